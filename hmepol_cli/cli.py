@@ -1,0 +1,224 @@
+"""The ``hmepol`` command: train, sweep, report, finetune, show.
+
+``main`` takes the subcommand from argv and hands the rest to a ``@hydra.main`` app, so single
+runs, ``--cfg job``, ``-m`` and launchers all keep working (STYLE.md, Hydra facts).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+import hydra
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from hmepol_cli.checkpoint import RUN_INFO, RunDirError, read_json, run_config
+from hmepol_cli.config import ConfigError, register_configs, validate
+
+log = logging.getLogger("hmepol")
+
+CONFIG_PATH = "pkg://hmepol_cli.conf"
+# Keys a resumed run may change; everything else comes from the run's saved config.
+RESUMABLE_KEYS = ("epochs", "device", "progress", "threads", "eval.every")
+
+USAGE = """usage: hmepol COMMAND [overrides...]
+
+commands:
+  train     one run:            hmepol train env=corridor algo=hmepol seed=3
+  sweep     a Hydra multirun:   hmepol sweep wind=0.05,0.15,0.25,0.4 seed=0,1,2,3
+  report    thesis figures:     hmepol report [RUNS_DIR] [--out DIR]
+  finetune  TRPO on a goal:     hmepol finetune init=<run dir> goal=random
+  show      draw a world:       hmepol show env=corridor [--out FILE]
+
+Any Hydra override works with train, sweep and finetune (e.g. --cfg job, hydra/launcher=slurm).
+"""
+
+
+def _run_dir_resolver(resume: str | None, default: str) -> str:
+    return str(resume) if resume else default
+
+
+OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
+register_configs()
+
+
+class UserError(Exception):
+    """Any mistake of the user's that gets one line, not a traceback."""
+
+
+def fail(message: str, code: int = 2) -> None:
+    print(f"hmepol: error: {message}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+# --------------------------------------------------------------------------- train / sweep
+def _set_threads(cfg: DictConfig) -> None:
+    if cfg.threads > 0:
+        torch.set_num_threads(int(cfg.threads))
+        return
+    hc = HydraConfig.get()
+    n_jobs = OmegaConf.select(hc, "launcher.n_jobs") if hc.mode == RunMode.MULTIRUN else None
+    if n_jobs:  # joblib reuses workers: set threads inside each job so jobs don't oversubscribe
+        n_jobs = os.cpu_count() if n_jobs < 0 else n_jobs
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // n_jobs))
+
+
+def _resumed_config(cfg: DictConfig, run_dir: Path) -> DictConfig:
+    saved = run_config(run_dir)
+    overrides = HydraConfig.get().overrides.task
+    with open_dict(saved):
+        for item in overrides:
+            key, _, value = item.partition("=")
+            if key in RESUMABLE_KEYS:
+                OmegaConf.update(saved, key, OmegaConf.select(cfg, key))
+            elif key not in ("resume",) and not key.startswith("hydra"):
+                log.warning("ignoring %s on resume: the run keeps the config it started with", item)
+        saved.resume = str(run_dir)
+    return saved
+
+
+def _train(cfg: DictConfig) -> str | None:
+    from hmepol_cli.trainer import Trainer
+
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    resuming = cfg.resume is not None
+    if resuming:
+        run_dir = Path(cfg.resume)
+        cfg = _resumed_config(cfg, run_dir)
+    validate(cfg)
+    info_file = run_dir / RUN_INFO
+    if not resuming and info_file.exists():
+        info = read_json(info_file)
+        if cfg.skip_finished and info.get("status") == "finished" and info.get("epochs_done", 0) >= cfg.epochs:
+            print(f"hmepol: {run_dir} already finished ({cfg.epochs} epochs); skipped")
+            return str(run_dir)
+        resuming = True  # an interrupted sweep job continues where it stopped
+    _set_threads(cfg)
+    trainer = Trainer(cfg, run_dir)
+    if resuming and trainer.restore():
+        print(f"hmepol: resuming {run_dir} at epoch {trainer.start_epoch}")
+    trainer.train()
+    print(f"hmepol: run written to {run_dir}")
+    return str(run_dir)
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
+def train_app(cfg: DictConfig) -> str | None:
+    try:
+        return _train(cfg)
+    except (ConfigError, RunDirError, UserError, ValueError) as error:
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            # A failed job must not stop the others: say why and let the sweep go on.
+            log.error("job failed: %s", error)
+            print(f"hmepol: error: {error}", file=sys.stderr)
+            return None
+        fail(str(error))
+    return None
+
+
+# --------------------------------------------------------------------------- finetune
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="finetune")
+def finetune_app(cfg: DictConfig) -> str | None:
+    from hmepol_cli.finetune import finetune
+
+    try:
+        return str(finetune(cfg))
+    except (ConfigError, RunDirError, UserError, ValueError) as error:
+        fail(str(error))
+    return None
+
+
+# --------------------------------------------------------------------------- report / show
+def _report(args: list[str]) -> None:
+    import argparse
+
+    from hmepol_cli.report import run_report
+
+    parser = argparse.ArgumentParser(prog="hmepol report", description="Thesis figures from finished runs.")
+    parser.add_argument("runs", nargs="?", default="outputs", help="folder holding run directories (default: outputs)")
+    parser.add_argument("--out", default=None, help="report folder (default: RUNS/report)")
+    ns = parser.parse_args(args)
+    runs = Path(ns.runs)
+    out = Path(ns.out) if ns.out else runs / "report"
+    try:
+        index = run_report(runs, out)
+    except ValueError as error:
+        fail(str(error))
+    print(f"hmepol: report written to {index}")
+
+
+def _show(args: list[str]) -> None:
+    import argparse
+
+    from hmepol_cli.envs import ENVIRONMENTS, make_world
+    from hmepol_cli.envs.render import show_world
+
+    parser = argparse.ArgumentParser(prog="hmepol show", description="Draw every configuration of a world.")
+    parser.add_argument("overrides", nargs="*", help="env=NAME [wind=FORCE]")
+    parser.add_argument("--out", default=None, help="PNG file (default: outputs/show/<env>.png)")
+    ns = parser.parse_args(args)
+    values = dict(item.partition("=")[::2] for item in ns.overrides)
+    unknown = set(values) - {"env", "wind"}
+    if unknown:
+        fail(f"unknown option(s) {', '.join(sorted(unknown))}; use env=NAME and wind=FORCE")
+    name = values.get("env", "slope")
+    if name not in ENVIRONMENTS:
+        fail(f"unknown env {name!r}; choose one of: {', '.join(ENVIRONMENTS)}")
+    try:
+        wind = float(values.get("wind", 0.4))
+    except ValueError:
+        fail(f"wind={values['wind']!r} is not a number")
+    if wind < 0:
+        fail(f"wind={wind!r} must be a number >= 0")
+    world = make_world(OmegaConf.create({"name": name, "wind": wind}))
+    out = Path(ns.out or f"outputs/show/{name}.png")
+    show_world(world, out)
+    print(f"hmepol: {name} drawn to {out}")
+
+
+# --------------------------------------------------------------------------- dispatch
+def _check_resume(args: list[str]) -> None:
+    """Refuse a resume directory that is not a run before Hydra creates anything in it."""
+    for item in args:
+        if item.startswith("resume="):
+            value = item.partition("=")[2]
+            if value not in ("", "null"):
+                try:
+                    run_config(Path(value))
+                except RunDirError as error:
+                    fail(str(error))
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    prog = "hmepol"
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(USAGE)
+        return
+    command, rest = argv[0], argv[1:]
+    if command == "train":
+        _check_resume(rest)
+        sys.argv = [prog, *rest]
+        train_app()
+    elif command == "sweep":
+        launcher = [] if any(a.startswith("hydra/launcher=") for a in rest) else ["hydra/launcher=local"]
+        sys.argv = [prog, "--multirun", *launcher, *rest]
+        train_app()
+    elif command == "finetune":
+        sys.argv = [prog, *rest]
+        finetune_app()
+    elif command == "report":
+        _report(rest)
+    elif command == "show":
+        _show(rest)
+    else:
+        fail(f"unknown command {command!r}; choose train, sweep, report, finetune or show (hmepol --help)")
+
+
+if __name__ == "__main__":
+    main()

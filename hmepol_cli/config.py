@@ -1,0 +1,156 @@
+"""Typed run configuration: the schema every composed Hydra config is checked against.
+
+The YAML files in ``conf/`` hold values; these dataclasses hold the types. A wrong type or an
+unknown key is refused by OmegaConf before any work starts, and :func:`validate` refuses values
+that have the right type but no meaning (k <= 0, alpha outside (0, 1], negative wind).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig
+
+
+class ConfigError(ValueError):
+    """A user-facing configuration mistake; the CLI prints it as one line."""
+
+
+@dataclass
+class EnvConfig:
+    name: str = "slope"
+    # corridor only: force of the wind along the corridor (top-level `wind` override).
+    wind: float = 0.4
+
+
+@dataclass
+class AlgoConfig:
+    name: str = "mepol"
+    objective: str = "mean"  # mean (Mepol, HMepol) | cvar (alpha-Mepol, eq. 3.3)
+    alpha: float = 1.0  # CVaR level; the lowest alpha fraction of mini-batch entropies
+    trajectories: int = 200  # N, trajectories per epoch
+    horizon: int = 400  # T
+    batch_size: int = 5  # B, trajectories per mini-batch (one configuration each)
+    kl_threshold: float = 15.0  # delta, trust region (Algorithm 3.1)
+    lr: float = 1e-5
+    max_off_iters: int = 30
+    backtrack_tries: int = 10  # learning-rate halvings allowed when the first step leaves the region
+    backtrack_coeff: float = 2.0
+
+
+@dataclass
+class PolicyConfig:
+    name: str = "markov"  # markov | recursive | twohead | gru | lstm
+    hidden: list[int] = field(default_factory=lambda: [300, 300])  # Gaussian head MLP
+    encoder_hidden: list[int] = field(default_factory=lambda: [300, 300])  # history encoder g
+    history_size: int = 100  # length of h'_t
+    bptt: str = "1"  # 1 (thesis) | n (truncated) | full (exact likelihoods)
+    init_log_std: float = -0.5
+
+
+@dataclass
+class EstimatorConfig:
+    name: str = "knn"
+    k: int = 30
+    neighbours: str = "auto"  # auto | kdtree | torch
+    eps: float = 1e-10  # floor of the ball volume, so coincident particles stay finite
+
+
+@dataclass
+class EvalConfig:
+    every: int = 0  # epochs between evaluations during training (0: only at the end)
+    trajectories: int = 100  # heatmap trajectories per configuration
+    horizon: int = 400
+    plot_trajectories: int = 10
+    plot_every: int = 10  # a point every this many steps on trajectory plots
+
+
+@dataclass
+class Config:
+    env: EnvConfig = field(default_factory=EnvConfig)
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    seed: int = 0
+    device: str = "cpu"  # cpu | cuda | auto
+    dtype: str = "float32"  # float32 | float64
+    epochs: int = 20
+    resume: Optional[str] = None
+    wind: float = 0.4
+    progress: bool = True
+    threads: int = 0  # torch threads; 0 = leave torch's default (sweeps set 1 per job)
+    checkpoint_every: int = 1
+    skip_finished: bool = True  # a re-run of a sweep skips a run directory that already finished
+
+
+def register_configs() -> None:
+    ConfigStore.instance().store(name="config_schema", node=Config)
+
+
+ALGOS = ("mepol", "alphamepol", "hmepol")
+OBJECTIVES = ("mean", "cvar")
+POLICIES = ("markov", "recursive", "twohead", "gru", "lstm")
+DEVICES = ("cpu", "cuda", "auto")
+NEIGHBOURS = ("auto", "kdtree", "torch")
+DTYPES = ("float32", "float64")
+
+
+def _one_of(key: str, value: object, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key}={value!r} is not allowed; choose one of: {', '.join(allowed)}")
+
+
+def _positive(key: str, value: float) -> None:
+    if not value > 0:
+        raise ConfigError(f"{key}={value!r} must be > 0")
+
+
+def parse_bptt(value: str) -> int | None:
+    """'full' -> None (whole trajectory), 'n' -> n >= 1."""
+    text = str(value).strip().lower()
+    if text == "full":
+        return None
+    if text.isdigit() and int(text) >= 1:
+        return int(text)
+    raise ConfigError(f"policy.bptt={value!r} is not allowed; use a whole number >= 1 or 'full'")
+
+
+def validate(cfg: DictConfig) -> None:
+    """Refuse values of the right type that mean nothing; one line names the value and the rule."""
+    from hmepol_cli.envs import ENVIRONMENTS
+
+    _one_of("env", cfg.env.name, tuple(ENVIRONMENTS))
+    _one_of("algo.name", cfg.algo.name, ALGOS)
+    _one_of("algo.objective", cfg.algo.objective, OBJECTIVES)
+    _one_of("policy", cfg.policy.name, POLICIES)
+    _one_of("device", cfg.device, DEVICES)
+    _one_of("dtype", cfg.dtype, DTYPES)
+    _one_of("estimator.neighbours", cfg.estimator.neighbours, NEIGHBOURS)
+    if not 0 < cfg.algo.alpha <= 1:
+        raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")
+    if cfg.estimator.k <= 0:
+        raise ConfigError(f"estimator.k={cfg.estimator.k!r} must be a whole number > 0")
+    if cfg.wind < 0 or cfg.env.wind < 0:
+        raise ConfigError(f"wind={cfg.env.wind!r} must be a number >= 0")
+    for key in ("trajectories", "horizon", "batch_size", "max_off_iters"):
+        _positive(f"algo.{key}", cfg.algo[key])
+    for key in ("kl_threshold", "lr", "backtrack_coeff"):
+        _positive(f"algo.{key}", cfg.algo[key])
+    if cfg.algo.trajectories % cfg.algo.batch_size:
+        raise ConfigError(
+            f"algo.trajectories={cfg.algo.trajectories} must be a multiple of "
+            f"algo.batch_size={cfg.algo.batch_size}"
+        )
+    if cfg.estimator.k >= cfg.algo.batch_size * cfg.algo.horizon:
+        raise ConfigError(
+            f"estimator.k={cfg.estimator.k} must be smaller than the particles of a mini-batch "
+            f"(batch_size * horizon = {cfg.algo.batch_size * cfg.algo.horizon})"
+        )
+    if cfg.epochs < 0:
+        raise ConfigError(f"epochs={cfg.epochs!r} must be >= 0")
+    parse_bptt(cfg.policy.bptt)
+    if cfg.policy.history_size <= 0:
+        raise ConfigError(f"policy.history_size={cfg.policy.history_size!r} must be > 0")

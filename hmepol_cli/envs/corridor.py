@@ -1,0 +1,136 @@
+"""Grid World with Corridor (thesis 5.2, Fig. 5.4): a room, one looping corridor, and a wind.
+
+Layout on the arena [-6, 6]^2 (36 times the area of the slope world, same action bound 0.2)::
+
+    y=6  +-----------------------------+-+-----------------------------+
+         |  NW     top band (west)  WJ | | EJ   top band (east)     NE  |
+         |                             |B|                             |
+    y=3  |        +-----------+--+     | |     +--+-----------+        |
+         |        |   north   |WS| wall   |ES|   north   |        |
+    y=2  |   W    |   +-------+  +--------+  +-------+   |    E   |
+         |  band  |   |                              |   |  band  |
+         |        |   |   room [-2,2]^2, no wind     |   |        |
+         |        |   |   start box [-0.5,0.5]^2     |   |        |
+         |        |   +------------------------------+   |        |
+    y=-3 |        +--------------------------------------+        |
+         |  SW                  south band                    SE    |
+    y=-6 +------------------------------------------------------------+
+        x=-6     -3  -2      -1.5 -0.5 0.5 1.5          2   3       6
+
+- The room's interior is [-2, 2]^2; its walls are 1 thick and fill [-3, 3]^2 around it.
+- The ring corridor is everything with |x| or |y| in [3, 6] (width 3).
+- Two stubs (1 wide) pierce the room's north wall: the west stub WS at x in [-1.5, -0.5] and the
+  east stub ES at x in [0.5, 1.5], both y in [2, 3].
+- A wall B at x in [-0.5, 0.5], y in [2, 6] (between the stubs, across the ring's top band)
+  cuts the ring, so the corridor is one path: room -> ES -> around the ring -> WS -> room,
+  walkable from either entrance to the other.
+
+Free area: 144 - 21 = 123, of which the corridor (ring 105 + stubs 2) is 107, 87 %.
+
+Wind (thesis 5.2): a fixed displacement of magnitude ``wind`` (default 0.4, twice the largest
+action) added to the clipped action, in the corridor only, never in the room. Its direction
+field is a set of rectangles tiling the corridor, each with a unit direction along the path:
+clockwise in config 0 (``clockwise``: up ES, east along the top, down the east band, west along
+the bottom, up the west band, east along the top, down WS) and its exact negation in config 1
+(``counterclockwise``). The corner squares of the ring (NW, NE, SE, SW) and the junction
+columns above the stubs (WJ, EJ, x in the stub's range, y in [3, 6]) carry the normalised sum of
+the incoming and outgoing directions, so both the field and its negation turn the corner.
+p_M = (0.5, 0.5).
+
+Consequence: with wind 0.4 one entrance is downwind in each configuration (WS in clockwise, ES in
+counterclockwise): the wind blows into the room there, and an agent pushing in at full force
+(0.2) is thrown back and never gets past the entrance (y <= 2.2). The other entrance is upwind:
+an agent that steps in is carried out and around the whole loop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from hmepol_cli.envs.base import Box, NavigationWorld
+
+ARENA = Box(-6.0, -6.0, 6.0, 6.0)
+ROOM = Box(-2.0, -2.0, 2.0, 2.0)  # interior, wind-free
+START = Box(-0.5, -0.5, 0.5, 0.5)
+WEST_STUB = Box(-1.5, 2.0, -0.5, 3.0)
+EAST_STUB = Box(0.5, 2.0, 1.5, 3.0)
+DEFAULT_WIND = 0.4  # twice the action bound (thesis 5.2)
+
+WALLS = (
+    Box(-3.0, -3.0, 3.0, -2.0),  # room's south wall
+    Box(-3.0, -2.0, -2.0, 2.0),  # west wall
+    Box(2.0, -2.0, 3.0, 2.0),  # east wall
+    Box(-3.0, 2.0, -1.5, 3.0),  # north wall, west of WS
+    Box(-0.5, 2.0, 0.5, 6.0),  # north wall between the stubs, continued across the ring (B)
+    Box(1.5, 2.0, 3.0, 3.0),  # north wall, east of ES
+)
+
+_D = 1.0 / math.sqrt(2.0)
+# Clockwise wind field: rectangles tiling the corridor, with the unit direction in each.
+# Rectangles are closed and the first one that holds a position decides (they overlap only on
+# shared edges, where either direction moves the agent along the path).
+CLOCKWISE_FIELD: tuple[tuple[Box, tuple[float, float]], ...] = (
+    (WEST_STUB, (0.0, -1.0)),  # down into the room
+    (EAST_STUB, (0.0, 1.0)),  # up out of the room
+    (Box(-1.5, 3.0, -0.5, 6.0), (_D, -_D)),  # WJ: east, then down WS
+    (Box(0.5, 3.0, 1.5, 6.0), (_D, _D)),  # EJ: up from ES, then east
+    (Box(-3.0, 3.0, -1.5, 6.0), (1.0, 0.0)),  # top band, west part
+    (Box(1.5, 3.0, 3.0, 6.0), (1.0, 0.0)),  # top band, east part
+    (Box(3.0, 3.0, 6.0, 6.0), (_D, -_D)),  # NE corner
+    (Box(3.0, -3.0, 6.0, 3.0), (0.0, -1.0)),  # east band
+    (Box(3.0, -6.0, 6.0, -3.0), (-_D, -_D)),  # SE corner
+    (Box(-3.0, -6.0, 3.0, -3.0), (-1.0, 0.0)),  # south band
+    (Box(-6.0, -6.0, -3.0, -3.0), (-_D, _D)),  # SW corner
+    (Box(-6.0, -3.0, -3.0, 3.0), (0.0, 1.0)),  # west band
+    (Box(-6.0, 3.0, -3.0, 6.0), (_D, _D)),  # NW corner
+)
+
+
+class CorridorWorld(NavigationWorld):
+    """Room plus one looping corridor; wind clockwise (config 0) or counterclockwise (config 1)."""
+
+    name = "corridor"
+    arena = ARENA
+    start = START
+    room = ROOM
+    config_names = ("clockwise", "counterclockwise")
+    config_probs = (0.5, 0.5)
+    walls = (WALLS, WALLS)
+    # One (Box, direction) list per configuration; config 1 is the exact negation of config 0.
+    wind_field = (
+        CLOCKWISE_FIELD,
+        tuple((box, (-dx, -dy)) for box, (dx, dy) in CLOCKWISE_FIELD),
+    )
+
+    def __init__(self, wind: float = DEFAULT_WIND) -> None:
+        if not wind >= 0:
+            raise ValueError(f"wind={wind!r} must be a number >= 0")
+        self.wind = float(wind)
+        super().__init__()
+
+    def _build_tensors(self) -> None:
+        super()._build_tensors()
+        kw = dict(device=self.device, dtype=self.dtype)
+        self._wind_boxes = torch.tensor(
+            [[(b.x0, b.y0, b.x1, b.y1) for b, _ in f] for f in self.wind_field], **kw
+        )  # (C, K, 4)
+        self._wind_dirs = torch.tensor([[d for _, d in f] for f in self.wind_field], **kw)  # (C, K, 2)
+
+    def wind_direction(self, positions: torch.Tensor, configs: torch.Tensor) -> torch.Tensor:
+        """Unit direction of the wind at each position, zero in the room. (N, 2), (N,) -> (N, 2)."""
+        boxes = self._wind_boxes[configs]  # (N, K, 4)
+        x, y = positions[:, :1], positions[:, 1:]
+        holds = (x >= boxes[..., 0]) & (x <= boxes[..., 2]) & (y >= boxes[..., 1]) & (y <= boxes[..., 3])
+        first = holds.to(torch.int8).argmax(dim=-1)  # first rectangle that holds the position
+        direction = self._wind_dirs[configs].gather(1, first[:, None, None].expand(-1, 1, 2))[:, 0]
+        r = self.room
+        in_room = (x >= r.x0) & (x <= r.x1) & (y >= r.y0) & (y <= r.y1)
+        in_corridor = holds.any(dim=-1, keepdim=True) & ~in_room
+        return torch.where(in_corridor, direction, torch.zeros_like(direction))
+
+    def force(
+        self, positions: torch.Tensor, configs: torch.Tensor, generator: torch.Generator | None
+    ) -> torch.Tensor:
+        return self.wind * self.wind_direction(positions, configs)

@@ -1,0 +1,178 @@
+"""Pictures of a world's configurations: walls, start area, and the force (slope or wind).
+
+``draw_world`` draws one configuration on a matplotlib axis (the report's heatmaps and
+trajectory plots draw on top of it); ``show_world`` saves every configuration side by side.
+Only matplotlib's object API is used (no pyplot), so the caller's backend is left alone.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+from hmepol_cli.envs.base import NavigationWorld
+from hmepol_cli.envs.corridor import CorridorWorld
+from hmepol_cli.envs.grid import SLOPE_STD, GridWorld
+
+WALL_COLOUR = "0.55"
+START_COLOUR = "#f2c500"  # the thesis highlights the start area in yellow
+FORCE_COLOUR = "#1f5fbf"
+REGION_COLOUR = "#9ec3ff"
+
+
+def draw_world(
+    ax: Axes,
+    world: NavigationWorld,
+    config: int,
+    *,
+    force: bool = True,
+    start: bool = True,
+    zorder: float = 2.0,
+) -> None:
+    """Draw configuration ``config`` of ``world`` on ``ax``: arena, walls, start box, force.
+
+    ``force`` adds the wind arrows (corridor), or the slope arrows over the shaded region the
+    slope acts on (gridworlds). Walls are opaque at ``zorder``, so a heatmap drawn below them
+    is hidden where the agent can never be.
+    """
+    a = world.arena
+    if force and isinstance(world, GridWorld):
+        _draw_slope_region(ax, world, config, zorder - 0.5)
+    for b in world.walls[config]:
+        ax.add_patch(Rectangle((b.x0, b.y0), b.x1 - b.x0, b.y1 - b.y0, facecolor=WALL_COLOUR,
+                               edgecolor="none", zorder=zorder))
+    if start:
+        s = world.start
+        ax.add_patch(Rectangle((s.x0, s.y0), s.x1 - s.x0, s.y1 - s.y0, facecolor=START_COLOUR,
+                               alpha=0.5, edgecolor=START_COLOUR, linewidth=1.0,
+                               zorder=zorder + 0.1))
+    if force:
+        points, directions, length = force_arrows(world, config)
+        if len(points):
+            tails = points - directions * length / 2
+            ax.quiver(tails[:, 0], tails[:, 1], directions[:, 0], directions[:, 1],
+                      angles="xy", scale_units="xy", scale=1 / length, width=0.007,
+                      headwidth=4, headlength=4, headaxislength=3.5, color=FORCE_COLOUR,
+                      zorder=zorder + 0.2)
+    ax.add_patch(Rectangle((a.x0, a.y0), a.x1 - a.x0, a.y1 - a.y0, facecolor="none",
+                           edgecolor="black", linewidth=1.2, zorder=zorder + 0.3))
+    ax.set_xlim(a.x0, a.x1)
+    ax.set_ylim(a.y0, a.y1)
+    ax.set_aspect("equal")
+
+
+def describe_config(world: NavigationWorld, config: int) -> str:
+    """One line on the force of a configuration, e.g. 'slope south ~ N(0.1, 0.01), y <= 0'."""
+    if isinstance(world, CorridorWorld):
+        return f"wind {world.wind:g} in the corridor only" if world.wind > 0 else "no wind"
+    if isinstance(world, GridWorld):
+        slope = world.slopes[config]
+        if slope.mean <= 0:
+            return "no slope"
+        text = f"slope {_compass(slope.direction)} ~ N({slope.mean:g}, {SLOPE_STD:g})"
+        r = slope.region
+        if r is not None and r.y1 < world.arena.y1:
+            text += f", y \u2264 {r.y1:g}"
+        return text
+    return ""
+
+
+def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 3.4) -> Path:
+    """Save one PNG with a panel per configuration, titled with its name and probability."""
+    n = world.n_configs
+    cols = min(n, 5)
+    rows = math.ceil(n / cols)
+    fig = Figure(figsize=(panel_size * cols, (panel_size + 0.35) * rows + 0.5))
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for c, ax in enumerate(axes.flat):
+        if c >= n:
+            ax.axis("off")
+            continue
+        draw_world(ax, world, c)
+        ax.set_title(f"{c}: {world.config_names[c]}  (p = {world.config_probs[c]:.2g})\n"
+                     f"{describe_config(world, c)}", fontsize=9.5)
+        ax.tick_params(labelsize=7)
+    fig.suptitle(f"{world.name}: free area {world.free_area():.3g}; walls grey, start area "
+                 f"yellow, force as arrows", fontsize=11)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def force_arrows(world: NavigationWorld, config: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Where to draw force arrows: centres (M, 2), unit directions (M, 2), and arrow length.
+
+    A lattice over the region the force acts on, keeping the arrows that touch no wall.
+    """
+    a = world.arena
+    if isinstance(world, CorridorWorld):
+        if world.wind == 0:
+            return np.zeros((0, 2)), np.zeros((0, 2)), 0.0
+        n = 16  # 0.75 apart: an arrow in every stub, four across the ring
+        lattice = _lattice(a.x0, a.y0, a.x1, a.y1, n)
+        points = torch.tensor(lattice, dtype=world.dtype, device=world.device)
+        configs = torch.full((len(lattice),), config, dtype=torch.long, device=world.device)
+        directions = world.wind_direction(points, configs).cpu().double().numpy()
+    elif isinstance(world, GridWorld) and world.slopes[config].mean > 0:
+        slope = world.slopes[config]
+        r = slope.region or a
+        x0, y0, x1, y1 = max(r.x0, a.x0), max(r.y0, a.y0), min(r.x1, a.x1), min(r.y1, a.y1)
+        n = 5  # 0.4 apart: on the corners of every other block, clear of 1-block walls
+        lattice = _lattice(a.x0, a.y0, a.x1, a.y1, n)
+        inside = ((lattice[:, 0] >= x0) & (lattice[:, 0] <= x1) & (lattice[:, 1] >= y0)
+                  & (lattice[:, 1] <= y1))
+        lattice = lattice[inside]
+        directions = np.tile(np.asarray(slope.direction, dtype=float), (len(lattice), 1))
+    else:
+        return np.zeros((0, 2)), np.zeros((0, 2)), 0.0
+    spacing = (a.x1 - a.x0) / n
+    length = 0.55 * spacing
+    keep = np.abs(directions).sum(axis=1) > 0
+    for offset in (-length / 2, 0.0, length / 2):
+        keep &= _free(world, config, lattice + offset * directions, margin=0.04 * spacing)
+    return lattice[keep], directions[keep], length
+
+
+def _lattice(x0: float, y0: float, x1: float, y1: float, n: int) -> np.ndarray:
+    """Centres of an n x n grid of cells over the rectangle, (n * n, 2)."""
+    xs = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
+    ys = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
+    gx, gy = np.meshgrid(xs, ys)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def _free(world: NavigationWorld, config: int, points: np.ndarray, margin: float) -> np.ndarray:
+    """True where a point is at least ``margin`` away from every wall and inside the arena."""
+    x, y = points[:, 0], points[:, 1]
+    a = world.arena
+    free = (x >= a.x0 + margin) & (x <= a.x1 - margin) & (y >= a.y0 + margin) & (y <= a.y1 - margin)
+    for b in world.walls[config]:
+        free &= ~((x > b.x0 - margin) & (x < b.x1 + margin) & (y > b.y0 - margin)
+                  & (y < b.y1 + margin))
+    return free
+
+
+def _draw_slope_region(ax: Axes, world: GridWorld, config: int, zorder: float) -> None:
+    slope = world.slopes[config]
+    if slope.mean <= 0:
+        return
+    a = world.arena
+    r = slope.region or a
+    x0, y0, x1, y1 = max(r.x0, a.x0), max(r.y0, a.y0), min(r.x1, a.x1), min(r.y1, a.y1)
+    ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, facecolor=REGION_COLOUR, alpha=0.3,
+                           edgecolor="none", zorder=zorder))
+
+
+def _compass(direction: tuple[float, float]) -> str:
+    names = ("east", "north-east", "north", "north-west", "west", "south-west", "south",
+             "south-east")
+    angle = math.degrees(math.atan2(direction[1], direction[0])) % 360
+    return names[round(angle / 45) % 8]

@@ -1,0 +1,159 @@
+"""Non-parametric kNN estimators of state entropy and KL divergence (thesis 2.3.4), in nats.
+
+Particles come in mini-batches: ``(M, P, d)``, M mini-batches of P particles of dimension d.
+Neighbour sets are searched once per epoch (:func:`nearest_neighbours`) and reused by every
+off-policy iteration, since the particles do not move while the policy is updated.
+
+Neighbour convention (public Mepol code): N_i^k holds particle i itself and its k - 1 nearest
+other particles, while R_i is the distance to the k-th nearest *other* particle. With uniform
+weights w = 1/P, W_i = k/P and eq. 2.7 reduces exactly to eq. 2.6.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+TINY = 1e-30
+
+
+@dataclass
+class Neighbours:
+    """kNN structure of a set of mini-batches of particles."""
+
+    indices: torch.Tensor  # (M, P, k) long: i itself, then its k-1 nearest others (N_i^k)
+    radius: torch.Tensor  # (M, P): distance to the k-th nearest other particle (R_i)
+    dim: int  # p, the particles' dimension
+
+    @property
+    def k(self) -> int:
+        return self.indices.shape[-1]
+
+
+def nearest_neighbours(particles: torch.Tensor, k: int, method: str = "auto") -> Neighbours:
+    """Search the k nearest other particles of every particle, within its own mini-batch.
+
+    particles (M, P, d). ``method``: "kdtree" (scipy's cKDTree, all cores), "torch" (pairwise
+    distances, chunked; the fast path on a GPU) or "auto" (torch on cuda, kdtree otherwise).
+    """
+    m, p, d = particles.shape
+    if not 0 < k < p:
+        raise ValueError(f"k={k} must be in [1, particles per mini-batch - 1 = {p - 1}]")
+    if method == "auto":
+        method = "torch" if particles.device.type == "cuda" else "kdtree"
+    if method == "kdtree":
+        idx, dist = _kdtree_search(particles, k)
+    elif method == "torch":
+        idx, dist = _torch_search(particles, k)
+    else:
+        raise ValueError(f"unknown neighbour search {method!r}; choose auto, kdtree or torch")
+    return _split_self(idx, dist, k, d)
+
+
+def _kdtree_search(particles: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    points = particles.detach().to("cpu", torch.float64).numpy()
+    idx = np.empty(points.shape[:2] + (k + 1,), dtype=np.int64)
+    dist = np.empty(points.shape[:2] + (k + 1,), dtype=np.float64)
+    for j, batch in enumerate(points):
+        dist[j], idx[j] = cKDTree(batch).query(batch, k=k + 1, workers=-1)
+    device = particles.device
+    return torch.from_numpy(idx).to(device), torch.from_numpy(dist).to(device, particles.dtype)
+
+
+def _torch_search(particles: torch.Tensor, k: int, chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
+    x = particles.detach()
+    idx_parts, dist_parts = [], []
+    for start in range(0, x.shape[1], chunk):
+        d = torch.cdist(x[:, start : start + chunk], x)  # (M, c, P)
+        dist, idx = d.topk(k + 1, dim=-1, largest=False, sorted=True)
+        idx_parts.append(idx)
+        dist_parts.append(dist)
+    return torch.cat(idx_parts, dim=1), torch.cat(dist_parts, dim=1)
+
+
+def _split_self(idx: torch.Tensor, dist: torch.Tensor, k: int, dim: int) -> Neighbours:
+    """From the k+1 nearest particles (self usually among them), keep self and k others.
+
+    When particles coincide the search may list a duplicate before i itself, or leave i out;
+    then the last candidate is dropped instead, so every row keeps exactly k others.
+    """
+    m, p, _ = idx.shape
+    own = torch.arange(p, device=idx.device).view(1, p, 1)
+    is_self = idx == own
+    drop = is_self.clone()
+    drop[..., -1] |= ~is_self.any(dim=-1)
+    keep = ~drop
+    others = idx[keep].view(m, p, k)
+    others_dist = dist[keep].view(m, p, k)
+    indices = torch.cat((own.expand(m, p, 1), others[..., : k - 1]), dim=-1)
+    return Neighbours(indices=indices, radius=others_dist[..., k - 1], dim=dim)
+
+
+def log_ball_volume(radius: torch.Tensor, dim: int, eps: float = 1e-10) -> torch.Tensor:
+    """log V of the dim-ball of each radius, floored at log(eps) so coincident particles stay finite."""
+    log_unit = (dim / 2) * math.log(math.pi) - math.lgamma(dim / 2 + 1)
+    log_v = dim * torch.log(radius.clamp_min(TINY)) + log_unit
+    return log_v.clamp_min(math.log(eps))
+
+
+def bias_correction(k: int) -> float:
+    """log k - psi(k), the bias-correction term of eqs. 2.6 and 2.7."""
+    return math.log(k) - float(torch.special.digamma(torch.tensor(float(k), dtype=torch.float64)))
+
+
+def knn_entropy(neighbours: Neighbours, eps: float = 1e-10) -> torch.Tensor:
+    """Eq. 2.6, per mini-batch: -(1/P) sum_i log(k / (P V_i)) + log k - psi(k). -> (M,)"""
+    p, k = neighbours.radius.shape[-1], neighbours.k
+    log_v = log_ball_volume(neighbours.radius, neighbours.dim, eps)
+    return -(math.log(k / p) - log_v).mean(dim=-1) + bias_correction(k)
+
+
+def neighbourhood_weights(weights: torch.Tensor, neighbours: Neighbours) -> torch.Tensor:
+    """W_i = sum of w_j over j in N_i^k. weights (M, P) -> (M, P)."""
+    m, p, k = neighbours.indices.shape
+    gathered = torch.gather(weights, 1, neighbours.indices.reshape(m, p * k)).view(m, p, k)
+    return gathered.sum(dim=-1)
+
+
+def iw_entropy(weights: torch.Tensor, neighbours: Neighbours, eps: float = 1e-10) -> torch.Tensor:
+    """Eq. 2.7, per mini-batch: -sum_i (W_i / k) log(W_i / V_i) + log k - psi(k). -> (M,)
+
+    weights (M, P), normalised within each mini-batch. Differentiable in the weights.
+    """
+    k = neighbours.k
+    w_sum = neighbourhood_weights(weights, neighbours)
+    log_v = log_ball_volume(neighbours.radius, neighbours.dim, eps)
+    # W log W with the log clamped, not xlogy: xlogy's gradient is 0/0 = NaN where a
+    # neighbourhood's weights all underflow to 0 (log-ratios hundreds apart after T steps).
+    terms = w_sum * (torch.log(w_sum.clamp_min(TINY)) - log_v)
+    return -terms.sum(dim=-1) / k + bias_correction(k)
+
+
+def kl_divergence(weights: torch.Tensor, neighbours: Neighbours) -> torch.Tensor:
+    """Eq. 2.8, per mini-batch: (1/P) sum_i log((k/P) / W_i), floored at 0. -> (M,)"""
+    p, k = weights.shape[-1], neighbours.k
+    w_sum = neighbourhood_weights(weights, neighbours).clamp_min(TINY)
+    return (math.log(k / p) - torch.log(w_sum)).mean(dim=-1).clamp_min(0.0)
+
+
+def importance_weights(log_ratios: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """Normalised importance weights of the particles of each mini-batch.
+
+    log_ratios (N, T): log pi'(a_t | h_t) - log pi(a_t | h_t) of each step. Particle t of a
+    trajectory is the state s_{t+1} reached by its first t+1 actions, so its weight is the product
+    of the ratios up to t; weights are normalised over the mini-batch's B trajectories.
+    -> (N / B, B * T), in the order of ``particles_by_batch``.
+    """
+    n, t = log_ratios.shape
+    log_w = torch.cumsum(log_ratios, dim=1).reshape(n // batch_size, batch_size * t)
+    return torch.softmax(log_w, dim=-1)
+
+
+def particles_by_batch(states: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """(N, T, d) states -> (N / B, B * T, d) particles grouped by mini-batch."""
+    n, t, d = states.shape
+    return states.reshape(n // batch_size, batch_size * t, d)

@@ -1,0 +1,117 @@
+"""The sparse goal-reaching task of fine-tuning (thesis 5.2, Fig. 5.9).
+
+A task fixes one configuration of a world and a target area, a square box in free space. The
+reward is 1 on the step the agent enters the box, 0 on every other step, and the episode ends
+there (the box is absorbing), or after ``horizon`` steps. So an episode's undiscounted return is
+1 when it reached the target and 0 otherwise, and the discount makes earlier arrivals worth more.
+Ending on arrival keeps the return bounded and leaves no reward to farm by stepping out and in.
+
+Random targets are drawn from a seed, target k from its own stream ``[seed, k]``: a square of
+side ``0.1 * arena side`` by default (0.2 on the [-1, 1]^2 gridworlds, 1.2 in the corridor)
+lying entirely in the configuration's free space and away from the start area (an agent must
+move to earn the reward). The same candidate stream serves every configuration, so worlds whose
+configurations share their walls (slope, corridor) get the same five targets in each
+configuration; multigrid's layouts can differ, and so can its targets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from hmepol_cli.envs.base import Box, NavigationWorld
+
+TARGET_SCALE = 0.1  # default target side, as a fraction of the arena side
+MASK_RESOLUTION = 400  # free-space raster used to check that a target lies in free space
+MAX_DRAWS = 100_000
+
+
+class TargetError(ValueError):
+    """No target area fits the request (a box too large for the free space)."""
+
+
+@dataclass(frozen=True)
+class GoalTask:
+    """Reach ``target`` in configuration ``config`` within ``horizon`` steps."""
+
+    target: Box
+    config: int
+    horizon: int
+
+    def reached(self, positions: torch.Tensor) -> torch.Tensor:
+        """True where a position lies in the target box. positions (N, 2) -> (N,) bool."""
+        b = self.target
+        x, y = positions[:, 0], positions[:, 1]
+        return (x >= b.x0) & (x <= b.x1) & (y >= b.y0) & (y <= b.y1)
+
+
+def default_target_side(world: NavigationWorld) -> float:
+    a = world.arena
+    return TARGET_SCALE * min(a.x1 - a.x0, a.y1 - a.y0)
+
+
+def box_around(center: tuple[float, float], side: float) -> Box:
+    x, y = center
+    return Box(x - side / 2, y - side / 2, x + side / 2, y + side / 2)
+
+
+def _overlaps(a: Box, b: Box) -> bool:
+    return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
+
+
+def _box_is_free(free: np.ndarray, arena: Box, box: Box) -> bool:
+    """Every raster cell whose centre lies in ``box`` is free. free (R, R) bool, row 0 at y0."""
+    rows, cols = free.shape
+    cw, ch = (arena.x1 - arena.x0) / cols, (arena.y1 - arena.y0) / rows
+    # Indices of the cell centres inside [x0, x1]: centre_i = x0_arena + (i + 1/2) cw.
+    c0 = max(0, int(np.ceil((box.x0 - arena.x0) / cw - 0.5)))
+    c1 = min(cols - 1, int(np.floor((box.x1 - arena.x0) / cw - 0.5)))
+    r0 = max(0, int(np.ceil((box.y0 - arena.y0) / ch - 0.5)))
+    r1 = min(rows - 1, int(np.floor((box.y1 - arena.y0) / ch - 0.5)))
+    if c1 < c0 or r1 < r0:
+        return True  # smaller than a cell: judged by its centre cell below
+    return bool(free[r0 : r1 + 1, c0 : c1 + 1].all())
+
+
+def draw_target(world: NavigationWorld, config: int, index: int, seed: int, side: float) -> Box:
+    """Target ``index`` of ``seed``: a free square of ``side`` away from the start area."""
+    arena = world.arena
+    if side <= 0 or side >= min(arena.x1 - arena.x0, arena.y1 - arena.y0):
+        raise TargetError(f"goal_size={side!r} must be > 0 and smaller than the arena side")
+    free = world.free_mask(config, MASK_RESOLUTION)
+    rng = np.random.default_rng([int(seed), int(index)])
+    half = side / 2
+    for _ in range(MAX_DRAWS):
+        cx = rng.uniform(arena.x0 + half, arena.x1 - half)
+        cy = rng.uniform(arena.y0 + half, arena.y1 - half)
+        box = box_around((cx, cy), side)
+        if not _overlaps(box, world.start) and _box_is_free(free, arena, box):
+            return box
+    raise TargetError(
+        f"goal_size={side!r}: no free square of that side found in {world.name} config {config}; "
+        "use a smaller goal_size"
+    )
+
+
+def make_tasks(
+    world: NavigationWorld,
+    config: int,
+    horizon: int,
+    goal: str | list,
+    targets: int,
+    seed: int,
+    side: float | None,
+) -> list[GoalTask]:
+    """The fine-tuning tasks of one configuration.
+
+    ``goal`` is ``"random"`` (``targets`` boxes drawn from ``seed``) or a list of ``[x, y]``
+    target centres (then ``targets`` is ignored).
+    """
+    side = default_target_side(world) if side is None else float(side)
+    if isinstance(goal, str):
+        boxes = [draw_target(world, config, k, seed, side) for k in range(targets)]
+    else:
+        boxes = [box_around((float(x), float(y)), side) for x, y in goal]
+    return [GoalTask(box, config, horizon) for box in boxes]

@@ -1,0 +1,28 @@
+"""Objectives over the per-mini-batch entropies of an epoch (thesis 3.3.1, 3.4.2, 4.2.3)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def mean(entropies: torch.Tensor) -> torch.Tensor:
+    """Mepol / HMepol: the mean of the mini-batch entropies. (M,) -> ()"""
+    return entropies.mean()
+
+
+def cvar(entropies: torch.Tensor, alpha: float) -> torch.Tensor:
+    """alpha-Mepol, eq. 3.3: CVaR_alpha, the mean of the lowest ceil(alpha * M) entropies. (M,) -> ()"""
+    if not 0 < alpha <= 1:
+        raise ValueError(f"alpha={alpha!r} must be in (0, 1]")
+    count = max(1, math.ceil(alpha * entropies.numel() - 1e-9))
+    return torch.topk(entropies, count, largest=False).values.mean()
+
+
+def objective(entropies: torch.Tensor, name: str, alpha: float = 1.0) -> torch.Tensor:
+    if name == "mean":
+        return mean(entropies)
+    if name == "cvar":
+        return cvar(entropies, alpha)
+    raise ValueError(f"unknown objective {name!r}; choose mean or cvar")

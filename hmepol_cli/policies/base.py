@@ -1,0 +1,124 @@
+"""The policy interface the trainer talks to: a diagonal Gaussian on a history encoding.
+
+Every policy carries a recurrent *history* tensor ``(N, H)`` between steps (thesis 4.2.1:
+h'_0 = 0, h'_t = g(s_t, h'_{t-1})); a Markovian policy has H = 0 and ignores it. One step maps
+(s_t, h'_{t-1}) to (mean of a_t, h'_t). The log-std is a state-independent parameter (SPEC 4).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def mlp(sizes: list[int], out_activation: bool = False) -> nn.Sequential:
+    """Linear layers with ReLU between them (and after the last when ``out_activation``)."""
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2 or out_activation:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+def shrink_last_layer(net: nn.Sequential, scale: float = 0.01) -> None:
+    """Start with a near-zero mean action, as Mepol does before training."""
+    last = [m for m in net if isinstance(m, nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight.mul_(scale)
+        last.bias.zero_()
+
+
+class Policy(nn.Module):
+    """pi_theta(a | h): diagonal Gaussian whose mean reads the encoded history."""
+
+    history_size: int = 0
+
+    def __init__(self, state_dim: int, action_dim: int, init_log_std: float) -> None:
+        super().__init__()
+        self.state_dim, self.action_dim = state_dim, action_dim
+        self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
+
+    # -- to implement ----------------------------------------------------------------------
+    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(s_t (N, d), h'_{t-1} (N, H)) -> (mean of a_t (N, a), h'_t (N, H))."""
+        raise NotImplementedError
+
+    # -- shared ----------------------------------------------------------------------------
+    def initial_history(self, n: int, device=None, dtype=None) -> torch.Tensor:
+        """h'_0 = 0 for n trajectories. (n, H)"""
+        return torch.zeros(n, self.history_size, device=device, dtype=dtype)
+
+    def gaussian_log_prob(self, mean: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """log N(actions; mean, diag(exp(log_std))^2), summed over action dims. (...,)"""
+        log_std = self.log_std
+        z = (actions - mean) * torch.exp(-log_std)
+        return (-0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(dim=-1)
+
+    @torch.no_grad()
+    def act(
+        self,
+        states: torch.Tensor,
+        history: torch.Tensor,
+        generator: torch.Generator | None = None,
+        deterministic: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Sample a_t. -> (actions (N, a), log pi(a_t | h_t) (N,), h'_t (N, H))."""
+        mean, next_history = self.step(states, history)
+        if deterministic:
+            actions = mean
+        else:
+            noise = torch.randn(mean.shape, device=mean.device, dtype=mean.dtype, generator=generator)
+            actions = mean + noise * torch.exp(self.log_std)
+        return actions, self.gaussian_log_prob(mean, actions), next_history
+
+    def log_prob(
+        self,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        histories: torch.Tensor,
+        bptt: int | None = 1,
+    ) -> torch.Tensor:
+        """log pi_theta(a_t | h_t) of stored trajectories under the current parameters.
+
+        states (N, T, d) are s_0..s_{T-1}, actions (N, T, a), histories (N, T, H) the h'_{t-1}
+        each step of the *sampling* policy read. ``bptt`` sets how far back the recursion is
+        recomputed under the current parameters: 1 (the stored h'_{t-1} is the input; thesis),
+        n (from the stored h'_{t-n}), None (the whole trajectory from h'_0 = 0: exact
+        likelihoods). Gradients flow through the recomputed steps only. -> (N, T)
+        """
+        n, t, _ = states.shape
+        if self.history_size == 0 or bptt == 1:
+            mean, _ = self.step(states.reshape(n * t, -1), histories.reshape(n * t, -1))
+            return self.gaussian_log_prob(mean.view(n, t, -1), actions)
+        if bptt is None or bptt >= t:
+            return self._log_prob_full(states, actions)
+        return self._log_prob_truncated(states, actions, histories, bptt)
+
+    def _log_prob_full(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        n, t, _ = states.shape
+        history = self.initial_history(n, states.device, states.dtype)
+        means = []
+        for step in range(t):
+            mean, history = self.step(states[:, step], history)
+            means.append(mean)
+        return self.gaussian_log_prob(torch.stack(means, dim=1), actions)
+
+    def _log_prob_truncated(
+        self, states: torch.Tensor, actions: torch.Tensor, histories: torch.Tensor, n_back: int
+    ) -> torch.Tensor:
+        n, t, d = states.shape
+        steps = torch.arange(t, device=states.device)
+        first = (steps - n_back + 1).clamp_min(0)  # first recomputed step of each t
+        history = histories[:, first]  # stored h'_{first-1}, detached data: (N, T, H)
+        mean = None
+        for i in range(n_back):
+            src = steps - n_back + 1 + i  # the step whose state this pass reads
+            valid = (src >= 0).view(1, t, 1)
+            s = states[:, src.clamp_min(0)]
+            step_mean, step_history = self.step(s.reshape(n * t, d), history.reshape(n * t, -1))
+            history = torch.where(valid, step_history.view(n, t, -1), history)
+            mean = step_mean.view(n, t, -1)  # the last pass (src = t) is always valid
+        return self.gaussian_log_prob(mean, actions)

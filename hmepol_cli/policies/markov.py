@@ -1,0 +1,19 @@
+"""Markovian policy (Mepol, alpha-Mepol): an MLP on the current state (thesis 4.2.2)."""
+
+from __future__ import annotations
+
+import torch
+
+from hmepol_cli.policies.base import Policy, mlp, shrink_last_layer
+
+
+class MarkovPolicy(Policy):
+    history_size = 0
+
+    def __init__(self, state_dim: int, action_dim: int, hidden: list[int], init_log_std: float):
+        super().__init__(state_dim, action_dim, init_log_std)
+        self.mean_net = mlp([state_dim, *hidden, action_dim])
+        shrink_last_layer(self.mean_net)
+
+    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.mean_net(states), history

@@ -1,0 +1,99 @@
+"""Non-Markovian policies built on a recursive history encoder (thesis chapter 4, and ch. 6).
+
+- ``RecursivePolicy``: the thesis architecture. Encoder g: MLP on [s_t, h'_{t-1}] with ReLU
+  output, giving h'_t; Gaussian head: MLP on h'_t (Fig. 4.4).
+- ``TwoHeadPolicy``: one network with two outputs, the action mean and the next history.
+- ``GRUPolicy`` / ``LSTMPolicy``: gated recurrent encoders; the LSTM's history tensor holds
+  [h, c] side by side, so every policy carries one (N, H) tensor.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from hmepol_cli.policies.base import Policy, mlp, shrink_last_layer
+
+
+class RecursivePolicy(Policy):
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        hidden: list[int],
+        encoder_hidden: list[int],
+        history_size: int,
+        init_log_std: float,
+    ):
+        super().__init__(state_dim, action_dim, init_log_std)
+        self.history_size = history_size
+        self.encoder = mlp([state_dim + history_size, *encoder_hidden, history_size], out_activation=True)
+        self.head = mlp([history_size, *hidden, action_dim])
+        shrink_last_layer(self.head)
+
+    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        next_history = self.encoder(torch.cat((states, history), dim=-1))  # h'_t = g(s_t, h'_{t-1})
+        return self.head(next_history), next_history
+
+
+class TwoHeadPolicy(Policy):
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        hidden: list[int],
+        history_size: int,
+        init_log_std: float,
+    ):
+        super().__init__(state_dim, action_dim, init_log_std)
+        self.history_size = history_size
+        self.trunk = mlp([state_dim + history_size, *hidden], out_activation=True)
+        self.mean_head = nn.Sequential(nn.Linear(hidden[-1], action_dim))
+        self.history_head = nn.Sequential(nn.Linear(hidden[-1], history_size), nn.ReLU())
+        shrink_last_layer(self.mean_head)
+
+    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        features = self.trunk(torch.cat((states, history), dim=-1))
+        return self.mean_head(features), self.history_head(features)
+
+
+class GRUPolicy(Policy):
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        hidden: list[int],
+        history_size: int,
+        init_log_std: float,
+    ):
+        super().__init__(state_dim, action_dim, init_log_std)
+        self.history_size = history_size
+        self.cell = nn.GRUCell(state_dim, history_size)
+        self.head = mlp([history_size, *hidden, action_dim])
+        shrink_last_layer(self.head)
+
+    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        next_history = self.cell(states, history)
+        return self.head(next_history), next_history
+
+
+class LSTMPolicy(Policy):
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        hidden: list[int],
+        history_size: int,
+        init_log_std: float,
+    ):
+        super().__init__(state_dim, action_dim, init_log_std)
+        self.cell_size = history_size
+        self.history_size = 2 * history_size  # [h, c]
+        self.cell = nn.LSTMCell(state_dim, history_size)
+        self.head = mlp([history_size, *hidden, action_dim])
+        shrink_last_layer(self.head)
+
+    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h, c = history.split(self.cell_size, dim=-1)
+        h, c = self.cell(states, (h, c))
+        return self.head(h), torch.cat((h, c), dim=-1)

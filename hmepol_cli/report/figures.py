@@ -1,0 +1,515 @@
+"""The report's figures (thesis ch. 5 and appendix A), each drawn only when the runs allow it.
+
+Every figure function takes the groups of one environment and returns :class:`FigureRecord`s
+(the PNG path and a caption that says what was compared, over how many seeds, and how).
+Curves and bars are the mean over seeds with a Student-t 95% confidence interval; a group with
+one seed has no interval and is drawn without a band.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+
+from hmepol_cli.report.plots import (
+    BOUND_COLOUR,
+    LINESTYLES,
+    algo_colour,
+    heatmap_grid,
+    new_figure,
+    save,
+    trajectory_grid,
+)
+from hmepol_cli.report.runs import Group, Run, algo_label, format_wind
+from hmepol_cli.report.stats import curve_ci, mean_ci
+
+MAX_CONFIG_BARS = 5  # more configurations than this (multigrid): bars for average and config 0
+MAX_TRAJECTORY_SEEDS = 3
+
+# Which thesis figure each kind of figure reproduces, per environment.
+THESIS_FIGURES = {
+    ("slope", "curves"): "Fig. A.1a",
+    ("slope", "curves_by_config"): "Fig. A.1b, A.1c",
+    ("slope", "bars"): "Fig. 5.2",
+    ("slope", "heatmaps"): "Fig. 5.3",
+    ("corridor", "curves"): "Fig. A.2",
+    ("corridor", "bars"): "Fig. 5.7",
+    ("corridor", "wind"): "Fig. 5.10",
+    ("corridor", "heatmaps"): "Fig. 5.8",
+    ("corridor", "trajectories", "mepol"): "Fig. 5.5",
+    ("corridor", "trajectories", "hmepol"): "Fig. 5.6",
+    ("corridor", "finetune"): "Fig. 5.9",
+    ("multigrid", "curves"): "Fig. 5.13",
+    ("multigrid", "bars"): "Fig. 5.12",
+    ("multigrid", "heatmaps"): "Fig. 5.11",
+}
+
+
+@dataclass
+class FigureRecord:
+    path: Path
+    title: str
+    caption: str
+    thesis: str  # the thesis figure it reproduces ("" when it has no counterpart)
+    env: str
+
+
+@dataclass(frozen=True)
+class Style:
+    colour: str
+    linestyle: object
+    label: str
+
+
+# ------------------------------------------------------------------------------------- helpers
+def series_styles(groups: Iterable[Group]) -> dict[str, Style]:
+    """label -> style: the algorithm's colour; a second series of one algorithm gets a new dash."""
+    styles: dict[str, Style] = {}
+    per_algo: dict[str, int] = {}
+    for group in groups:
+        if group.label in styles:
+            continue
+        k = per_algo.get(group.algo, 0)
+        per_algo[group.algo] = k + 1
+        styles[group.label] = Style(algo_colour(group.algo), LINESTYLES[k % len(LINESTYLES)], group.label)
+    return styles
+
+
+def load_world(env: str, wind: float):
+    """The world's geometry (walls, arena), or None when this env cannot be built here."""
+    try:
+        from hmepol_cli.envs import make_world
+
+        return make_world(SimpleNamespace(name=env, wind=wind if np.isfinite(wind) else 0.0))
+    except Exception:
+        return None
+
+
+def slug(text: str) -> str:
+    text = text.replace("α", "alpha").lower()
+    return re.sub(r"[^a-z0-9]+", "-", text).strip("-")
+
+
+def winds_of(groups: list[Group]) -> list[float]:
+    return sorted({g.wind for g in groups}, key=lambda w: np.nan_to_num(w, nan=-1.0))
+
+
+def wind_tag(wind: float, several: bool) -> str:
+    return f"_wind{format_wind(wind)}" if several else ""
+
+
+def wind_title(wind: float, several: bool) -> str:
+    return f", wind {format_wind(wind)}" if several else ""
+
+
+def seeds_text(groups: list[Group]) -> str:
+    """'8 seeds each' or 'Mepol 8 seeds, HMepol 3 seeds'; notes a group with no CI."""
+    counts = {g.label: len(g.runs) for g in groups}
+    if len(set(counts.values())) == 1:
+        n = next(iter(counts.values()))
+        text = f"{n} seed{'s' if n > 1 else ''}" + (" each" if len(counts) > 1 else "")
+    else:
+        text = ", ".join(f"{label} {n} seed{'s' if n > 1 else ''}" for label, n in counts.items())
+    if any(n < 2 for n in counts.values()):
+        text += " (a single seed has no confidence interval: no band)"
+    return text
+
+
+def average_bound(run: Run) -> float:
+    """Highest average entropy: sum_c p_M(c) log(free area of c), the uniform visitation."""
+    logs, probs = np.array(run.log_free_area), np.array(run.config_probs)
+    return float((logs * probs).sum() / probs.sum()) if np.isfinite(logs).all() else math.nan
+
+
+def config_bound(run: Run, config: int | None) -> float:
+    return average_bound(run) if config is None else run.log_free_area[config]
+
+
+def draw_bound(ax, value: float, label: bool = True) -> None:
+    if np.isfinite(value):
+        ax.axhline(
+            value,
+            color=BOUND_COLOUR,
+            ls="--",
+            lw=1.0,
+            label=f"log(free area) = {value:.2f} nats" if label else None,
+        )
+
+
+def draw_curve(ax, group: Group, style: Style, config: int | None) -> None:
+    epochs, curves = group.curves(config)
+    if curves.size == 0:
+        return
+    mean, half, _ = curve_ci(curves)
+    n = len(group.runs)
+    ax.plot(epochs, mean, color=style.colour, ls=style.linestyle, lw=1.5, label=f"{style.label} (n={n})")
+    if np.isfinite(half).any():
+        ax.fill_between(epochs, mean - half, mean + half, color=style.colour, alpha=0.2, lw=0)
+
+
+def _legend(fig, axes) -> None:
+    """One legend for the figure, below the panels, from the union of the panels' handles."""
+    seen: dict[str, object] = {}
+    for ax in np.ravel(axes):
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(label, handle)
+    if seen:
+        fig.legend(
+            list(seen.values()),
+            list(seen.keys()),
+            loc="outside lower center",
+            ncols=min(len(seen), 4),
+            frameon=False,
+        )
+
+
+# ------------------------------------------------------------------------- entropy per epoch
+def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """Average entropy per epoch, one panel per wind (A.1a, A.2, 5.13)."""
+    styles = series_styles(groups)
+    winds = winds_of(groups)
+    several = len(winds) > 1
+    cols = min(len(winds), 2)
+    rows = math.ceil(len(winds) / cols)
+    fig = new_figure(5.0 * cols, 3.4 * rows + 0.6)
+    axes = fig.subplots(rows, cols, squeeze=False, sharey=True)
+    for i, wind in enumerate(winds):
+        ax = axes[i // cols, i % cols]
+        members = [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
+        for group in members:
+            draw_curve(ax, group, styles[group.label], None)
+        draw_bound(ax, average_bound(members[0].first))
+        ax.set_title(f"wind {format_wind(wind)}" if several else "average over configurations")
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("entropy (nats)")
+        ax.grid(alpha=0.3)
+    for j in range(len(winds), rows * cols):
+        axes[j // cols, j % cols].set_axis_off()
+    compared = " vs ".join(styles)
+    fig.suptitle(f"{env}: average entropy per epoch, {compared}")
+    _legend(fig, axes)
+    path = save(fig, out_dir / f"{env}_entropy_epochs.png")
+    caption = (
+        f"Average state entropy (kNN estimate, nats) at the start of each epoch, mean over "
+        f"mini-batches of all configurations, for {compared}"
+        + (f", one panel per wind force ({', '.join(map(format_wind, winds))})" if several else "")
+        + f". Line: mean over seeds; band: Student-t 95% CI ({seeds_text(groups)}). "
+        "Dashed: log(free area) weighted by p_M, the entropy of a uniform visitation."
+    )
+    return [FigureRecord(path, f"{env}: average entropy per epoch", caption,
+                         THESIS_FIGURES.get((env, "curves"), ""), env)]
+
+
+def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """Entropy per epoch in each configuration, one panel per (wind, configuration) (A.1b, A.1c)."""
+    styles = series_styles(groups)
+    winds = winds_of(groups)
+    several = len(winds) > 1
+    names = groups[0].config_names
+    n_configs = len(names)
+    cols = min(n_configs, 5)
+    per_wind = math.ceil(n_configs / cols)
+    fig = new_figure(4.0 * cols, 3.0 * per_wind * len(winds) + 0.6)
+    axes = fig.subplots(per_wind * len(winds), cols, squeeze=False, sharey=True)
+    for w, wind in enumerate(winds):
+        members = [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
+        for c in range(per_wind * cols):
+            ax = axes[w * per_wind + c // cols, c % cols]
+            if c >= n_configs:
+                ax.set_axis_off()
+                continue
+            for group in members:
+                draw_curve(ax, group, styles[group.label], c)
+            draw_bound(ax, config_bound(members[0].first, c))
+            ax.set_title(f"config {c}: {names[c]}{wind_title(wind, several)}", fontsize=10)
+            ax.set_xlabel("epoch")
+            if c % cols == 0:
+                ax.set_ylabel("entropy (nats)")
+            ax.grid(alpha=0.3)
+    compared = " vs ".join(styles)
+    fig.suptitle(f"{env}: entropy per epoch in each configuration, {compared}")
+    _legend(fig, axes)
+    path = save(fig, out_dir / f"{env}_entropy_epochs_by_config.png")
+    caption = (
+        f"State entropy (nats) per epoch computed only on the mini-batches drawn in each "
+        f"configuration, for {compared}. Line: mean over seeds; band: Student-t 95% CI "
+        f"({seeds_text(groups)}); gaps are epochs where no seed drew that configuration. "
+        "Dashed: log(free area) of the configuration."
+    )
+    return [FigureRecord(path, f"{env}: entropy per epoch per configuration", caption,
+                         THESIS_FIGURES.get((env, "curves_by_config"), ""), env)]
+
+
+# ------------------------------------------------------------------------ final entropy bars
+def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """Final entropy as bars: average and per configuration, one panel per wind (5.2, 5.7, 5.12)."""
+    styles = series_styles(groups)
+    winds = winds_of(groups)
+    several = len(winds) > 1
+    names = groups[0].config_names
+    configs: list[int | None] = [None] + list(range(len(names) if len(names) <= MAX_CONFIG_BARS else 1))
+    cols = min(len(winds), 2)
+    rows = math.ceil(len(winds) / cols)
+    fig = new_figure(max(4.5, 1.3 * len(configs) * len(styles) ** 0.5 + 2.5) * cols, 3.6 * rows + 0.7)
+    axes = fig.subplots(rows, cols, squeeze=False, sharey=True)
+    width = 0.8 / len(styles)
+    rng = np.random.default_rng(0)  # jitter of the seed dots only
+    for i, wind in enumerate(winds):
+        ax = axes[i // cols, i % cols]
+        members = [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
+        for s, label in enumerate(styles):
+            group = next((g for g in members if g.label == label), None)
+            if group is None:
+                continue
+            style = styles[label]
+            for x, config in enumerate(configs):
+                finals = np.array(list(group.finals(config).values()))
+                ci = mean_ci(finals)
+                pos = x - 0.4 + width * (s + 0.5)
+                ax.bar(pos, ci.mean, width * 0.9, color=style.colour, alpha=0.75,
+                       label=f"{label} (n={ci.n})" if x == 0 else None)
+                if np.isfinite(ci.half_width):
+                    ax.errorbar(pos, ci.mean, yerr=ci.half_width, color="black", capsize=4, lw=1.2)
+                jitter = rng.uniform(-0.2, 0.2, finals.size) * width
+                ax.scatter(pos + jitter, finals, s=8, color="black", alpha=0.6, zorder=4, lw=0,
+                           label="one seed" if (x == 0 and s == 0) else None)
+        run = members[0].first
+        for x, config in enumerate(configs):
+            bound = config_bound(run, config)
+            if np.isfinite(bound):
+                ax.hlines(bound, x - 0.45, x + 0.45, color=BOUND_COLOUR, ls="--", lw=1.0,
+                          label="log(free area)" if x == 0 else None)
+        ticks = ["average"] + [f"config {c}\n{names[c]}" for c in configs[1:]]
+        ax.set_xticks(range(len(configs)), ticks)
+        ax.set_ylabel("final entropy (nats)")
+        ax.set_title(f"wind {format_wind(wind)}" if several else "")
+        ax.grid(axis="y", alpha=0.3)
+    for j in range(len(winds), rows * cols):
+        axes[j // cols, j % cols].set_axis_off()
+    compared = " vs ".join(styles)
+    fig.suptitle(f"{env}: entropy at the end of training, {compared}")
+    _legend(fig, axes)
+    path = save(fig, out_dir / f"{env}_final_entropy_bars.png")
+    shown = "the average over configurations and " + (
+        "each configuration" if len(configs) == len(names) + 1 else "configuration 0 (the hardest)"
+    )
+    caption = (
+        f"Final entropy (nats; per seed the mean over the last 10% of epochs) of {compared}: "
+        f"{shown}. Bars: mean over seeds; error bars: Student-t 95% CI ({seeds_text(groups)}); "
+        "dots: individual seeds. Dashed: log(free area), the entropy of a uniform visitation "
+        "(weighted by p_M for the average)."
+    )
+    return [FigureRecord(path, f"{env}: final entropy per configuration", caption,
+                         THESIS_FIGURES.get((env, "bars"), ""), env)]
+
+
+def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """Final average entropy against the wind force, one line per algorithm (5.10)."""
+    styles = series_styles(groups)
+    winds = winds_of(groups)
+    fig = new_figure(5.5, 3.8)
+    ax = fig.subplots()
+    span = (max(winds) - min(winds)) or 1.0
+    for s, (label, style) in enumerate(styles.items()):
+        xs, means, halves, ns = [], [], [], []
+        for group in (g for g in groups if g.label == label):
+            ci = mean_ci(list(group.finals().values()))
+            xs.append(group.wind)
+            means.append(ci.mean)
+            halves.append(ci.half_width)
+            ns.append(ci.n)
+        offset = (s - (len(styles) - 1) / 2) * 0.01 * span  # keep error bars apart
+        order = np.argsort(xs)
+        x = np.array(xs)[order] + offset
+        ax.errorbar(x, np.array(means)[order], yerr=np.nan_to_num(np.array(halves)[order]),
+                    color=style.colour, ls=style.linestyle, marker="o", capsize=4,
+                    label=f"{label} (n={min(ns)}–{max(ns)})" if min(ns) != max(ns) else f"{label} (n={ns[0]})")
+    draw_bound(ax, average_bound(groups[0].first))
+    ax.set_xticks(winds)
+    ax.set_xlabel("wind force")
+    ax.set_ylabel("final average entropy (nats)")
+    ax.grid(alpha=0.3)
+    compared = " vs ".join(styles)
+    ax.set_title(f"{env}: entropy at convergence vs wind force", fontsize=11)
+    ax.legend(fontsize=8)
+    path = save(fig, out_dir / f"{env}_entropy_vs_wind.png")
+    caption = (
+        f"Average entropy at convergence (nats; per seed the mean over the last 10% of epochs) "
+        f"against the wind force, {compared}. Markers: mean over seeds; error bars: Student-t 95% "
+        f"CI ({seeds_text(groups)}). Dashed: log(free area) weighted by p_M."
+    )
+    return [FigureRecord(path, f"{env}: entropy against wind force", caption,
+                         THESIS_FIGURES.get((env, "wind"), ""), env)]
+
+
+# -------------------------------------------------------------------------- heatmaps and paths
+def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """Log visitation probability of the final policies, one figure per wind (5.3, 5.8, 5.11)."""
+    records = []
+    winds = winds_of(groups)
+    several = len(winds) > 1
+    for wind in winds:
+        members = [g for g in groups if (g.wind == wind or (np.isnan(g.wind) and np.isnan(wind)))]
+        members = [g for g in members if g.representative().positions]
+        if not members:
+            continue
+        world = load_world(env, wind)
+        names = members[0].config_names
+        chosen = [(g, g.representative()) for g in members]
+        rows = [(f"{g.label}\nseed {run.seed}", run.positions) for g, run in chosen]
+        cols = min(len(names), 5)
+        blocks = len(rows) * math.ceil(len(names) / cols)
+        fig = new_figure(2.5 * cols + 1.3, 2.5 * blocks + 0.7)
+        heatmap_grid(fig, world, rows, names)
+        some = next(iter(chosen[0][1].positions.values()))
+        fig.suptitle(
+            f"{env}{wind_title(wind, several)}: log probability of state visitation "
+            f"({some.shape[0]} trajectories, T={some.shape[1] - 1})"
+        )
+        path = save(fig, out_dir / f"{env}{wind_tag(wind, several)}_heatmaps.png")
+        who = "; ".join(f"{g.label}: seed {run.seed} of {len(g.runs)}" for g, run in chosen)
+        caption = (
+            f"Log probability of state visitation (2-D histogram over the arena, one shared colour "
+            f"scale; white: never visited; grey: walls) of {some.shape[0]} fresh trajectories of "
+            f"{some.shape[1] - 1} steps per configuration, collected with the final policy of one "
+            f"representative seed per algorithm (the seed with the median final entropy): {who}."
+        )
+        records.append(FigureRecord(path, f"{env}{wind_title(wind, several)}: visitation heatmaps",
+                                    caption, THESIS_FIGURES.get((env, "heatmaps"), ""), env))
+    return records
+
+
+def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """Ten trajectories per configuration for a few seeds of each group (5.5, 5.6)."""
+    records = []
+    several = len(winds_of(groups)) > 1
+    for group in groups:
+        runs = [r for r in group.runs if r.positions]
+        if not runs:
+            continue
+        first = group.representative()
+        runs = [first] + [r for r in runs if r is not first][: MAX_TRAJECTORY_SEEDS - 1]
+        world = load_world(env, group.wind)
+        names = group.config_names
+        cols = min(len(names), 5)
+        blocks = len(runs) * math.ceil(len(names) / cols)
+        fig = new_figure(2.5 * cols + 0.4, 2.5 * blocks + 0.6)
+        trajectory_grid(fig, world, [(f"seed {r.seed}", r.positions) for r in runs], names)
+        fig.suptitle(
+            f"{env}{wind_title(group.wind, several)}: {group.label}, 10 trajectories per "
+            "configuration, a point every 10 steps (lighter = earlier)",
+            fontsize=10,
+        )
+        name = f"{env}{wind_tag(group.wind, several)}_trajectories_{slug(group.label)}.png"
+        path = save(fig, out_dir / name)
+        caption = (
+            f"Ten trajectories of the final {group.label} policy in each configuration (columns) "
+            f"for {len(runs)} of its {len(group.runs)} seeds (rows), a point every 10 steps, one "
+            "colour per trajectory, lighter points earlier in the trajectory; grey: walls."
+        )
+        thesis = THESIS_FIGURES.get((env, "trajectories", group.algo), "")
+        records.append(FigureRecord(path, f"{env}: trajectories of {group.label}", caption, thesis, env))
+    return records
+
+
+# ------------------------------------------------------------------------------- fine-tuning
+def finetune_frame(runs: list[Run]) -> pd.DataFrame:
+    """All fine-tuning returns, one row per (run, seed, target, config, epoch)."""
+    frames = []
+    for run in runs:
+        if run.finetune is None:
+            continue
+        frame = run.finetune.copy()
+        frame["env"] = run.env
+        frame["wind"] = run.wind
+        frame["run"] = str(run.path)
+        frames.append(frame)
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def finetune_curves(frame: pd.DataFrame) -> dict[tuple[str, int], tuple[np.ndarray, np.ndarray]]:
+    """(algo_init, config) -> (epochs, curves (n_seeds x n_targets, n_epochs))."""
+    out = {}
+    for (init, config), part in frame.groupby(["algo_init", "config"], sort=False):
+        table = part.pivot_table(index="epoch", columns=["run", "seed", "target"], values="return")
+        out[(str(init), int(config))] = (table.index.to_numpy(float), table.to_numpy(float).T)
+    return out
+
+
+def finetune_returns(env: str, frame: pd.DataFrame, names: list[str], out_dir: Path) -> list[FigureRecord]:
+    """Fine-tuning returns per epoch, per configuration, per initialisation (5.9)."""
+    records = []
+    winds = sorted(frame["wind"].unique())
+    several = len(winds) > 1
+    order = ["mepol", "alphamepol", "hmepol", "scratch"]
+    for wind in winds:
+        part = frame[frame["wind"] == wind]
+        curves = finetune_curves(part)
+        configs = sorted({c for _, c in curves})
+        inits = sorted({i for i, _ in curves}, key=lambda i: (order.index(i) if i in order else 9, i))
+        fig = new_figure(4.6 * len(configs), 3.6)
+        axes = fig.subplots(1, len(configs), squeeze=False, sharey=True)[0]
+        counts = []
+        for ax, config in zip(axes, configs):
+            for init in inits:
+                if (init, config) not in curves:
+                    continue
+                epochs, data = curves[(init, config)]
+                mean, half, n = curve_ci(data)
+                counts.append(data.shape[0])
+                colour = algo_colour(init)
+                name = "TRPO from scratch" if init == "scratch" else f"{algo_label(init)} init"
+                ax.plot(epochs, mean, color=colour, lw=1.5, label=f"{name} (n={data.shape[0]})")
+                if np.isfinite(half).any():
+                    ax.fill_between(epochs, mean - half, mean + half, color=colour, alpha=0.2, lw=0)
+            title = names[config] if config < len(names) else f"{config}"
+            ax.set_title(f"config {config}: {title}", fontsize=10)
+            ax.set_xlabel("fine-tuning epoch")
+            ax.set_ylabel("average return")
+            ax.grid(alpha=0.3)
+        fig.suptitle(f"{env}{wind_title(wind, several)}: TRPO fine-tuning on goal reaching")
+        _legend(fig, axes)
+        path = save(fig, out_dir / f"{env}{wind_tag(wind, several)}_finetune_returns.png")
+        n_seeds = part.groupby("algo_init")["seed"].nunique().to_dict()
+        n_targets = part.groupby("algo_init")["target"].nunique().to_dict()
+        who = ", ".join(
+            f"{algo_label(i)}: {n_seeds.get(i, 0)} seeds x {n_targets.get(i, 0)} targets" for i in inits
+        )
+        caption = (
+            "Average return per epoch of TRPO on a sparse goal-reaching task, per configuration, "
+            "started from a pre-trained policy or from scratch. Line: mean over every (seed, "
+            f"target area) curve; band: Student-t 95% CI over those curves ({who})."
+        )
+        records.append(FigureRecord(path, f"{env}: fine-tuning returns", caption,
+                                    THESIS_FIGURES.get((env, "finetune"), ""), env))
+    return records
+
+
+# ------------------------------------------------------------------------------------ all
+def make_figures(groups: list[Group], finetune_runs: list[Run], out_dir: Path) -> list[FigureRecord]:
+    """Every figure the runs allow, in thesis order within each environment."""
+    out_dir = Path(out_dir)
+    records: list[FigureRecord] = []
+    envs = list(dict.fromkeys([g.env for g in groups] + [r.env for r in finetune_runs]))
+    for env in envs:
+        members = [g for g in groups if g.env == env]
+        if members:
+            records += entropy_curves(env, members, out_dir)
+            records += entropy_curves_by_config(env, members, out_dir)
+            records += final_entropy_bars(env, members, out_dir)
+            if len(winds_of(members)) > 1:
+                records += entropy_against_wind(env, members, out_dir)
+            records += heatmaps(env, members, out_dir)
+            records += trajectories(env, members, out_dir)
+        frame = finetune_frame([r for r in finetune_runs if r.env == env])
+        if not frame.empty:
+            names = next((r.config_names for r in finetune_runs if r.env == env), [])
+            records += finetune_returns(env, frame, names, out_dir)
+    return records

@@ -1,0 +1,253 @@
+"""Drawing blocks shared by the report and the trainer: walls, visitation heatmaps, trajectories.
+
+Figures are built with :class:`matplotlib.figure.Figure` directly (no pyplot state, no GUI
+backend), so plotting works headless and from worker processes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.colors import to_rgb
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+# One colour per algorithm in every figure of the report.
+ALGO_COLOURS = {
+    "mepol": "#1f77b4",  # blue
+    "alphamepol": "#d62728",  # red
+    "hmepol": "#2ca02c",  # green
+    "scratch": "#7f7f7f",  # grey (fine-tuning from scratch)
+}
+OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#ff7f0e")
+LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1)), (0, (5, 2, 1, 2)))
+WALL_COLOUR = "0.45"
+BOUND_COLOUR = "0.25"  # the log(free area) line
+HEATMAP_CMAP = "viridis"
+DPI = 110
+
+
+def algo_colour(algo: str) -> str:
+    if algo in ALGO_COLOURS:
+        return ALGO_COLOURS[algo]
+    return OTHER_COLOURS[sum(map(ord, algo)) % len(OTHER_COLOURS)]
+
+
+def new_figure(width: float, height: float) -> Figure:
+    return Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+
+
+def save(fig: Figure, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+# ------------------------------------------------------------------------------------ the world
+def world_extent(world, positions: np.ndarray | None = None) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1) of the arena, or of the data when the world is unknown."""
+    if world is not None:
+        a = world.arena
+        return a.x0, a.x1, a.y0, a.y1
+    if positions is None or positions.size == 0:
+        return -1.0, 1.0, -1.0, 1.0
+    xy = positions.reshape(-1, 2)
+    lo, hi = np.nanmin(xy, axis=0), np.nanmax(xy, axis=0)
+    pad = 0.02 * float(max(hi - lo)) or 1.0
+    return lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad
+
+
+def draw_walls(ax, world, config: int) -> None:
+    """Grey rectangles for the walls of one configuration, the arena as the axes' frame."""
+    if world is None:
+        return
+    for box in world.walls[config]:
+        ax.add_patch(
+            Rectangle(
+                (box.x0, box.y0),
+                box.x1 - box.x0,
+                box.y1 - box.y0,
+                facecolor=WALL_COLOUR,
+                edgecolor="none",
+                zorder=3,
+            )
+        )
+
+
+def _map_axes(ax, extent: tuple[float, float, float, float], title: str | None = None) -> None:
+    x0, x1, y0, y1 = extent
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if title:
+        ax.set_title(title, fontsize=9)
+
+
+# ------------------------------------------------------------------------------------- heatmaps
+def default_bins(extent: tuple[float, float, float, float]) -> int:
+    """Bins per axis: 0.04-wide bins on the [-1, 1]^2 grid worlds, at most 100 on larger arenas."""
+    side = max(extent[1] - extent[0], extent[3] - extent[2])
+    return int(min(100, max(50, round(25 * side))))
+
+
+def visitation_log_prob(
+    positions: np.ndarray, extent: tuple[float, float, float, float], bins: int
+) -> np.ma.MaskedArray:
+    """log of the fraction of visited states in each bin; unvisited bins masked.
+
+    positions (n_traj, T+1, 2) -> (bins, bins), row 0 at the bottom (y0).
+    """
+    xy = positions.reshape(-1, 2)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    counts, _, _ = np.histogram2d(
+        xy[:, 0], xy[:, 1], bins=bins, range=[extent[:2], extent[2:]]
+    )
+    total = counts.sum()
+    with np.errstate(divide="ignore"):
+        logp = np.log(counts / total) if total > 0 else np.full_like(counts, -np.inf)
+    return np.ma.masked_invalid(logp.T)
+
+
+def heatmap_grid(
+    fig: Figure,
+    world,
+    rows: Sequence[tuple[str, dict[int, np.ndarray]]],
+    config_names: Sequence[str],
+    max_cols: int = 5,
+) -> None:
+    """Heatmaps of log visitation probability: one block of panels per row, one panel per config.
+
+    ``rows`` holds (label, {config: positions (n, T+1, 2)}). All panels share one colour scale.
+    """
+    n_configs = len(config_names)
+    cols = min(n_configs, max_cols)
+    rows_per_block = math.ceil(n_configs / cols)
+    some = next((p for _, by_c in rows for p in by_c.values()), None)
+    extent = world_extent(world, some)
+    bins = default_bins(extent)
+    maps = [
+        {c: visitation_log_prob(p, extent, bins) for c, p in by_config.items()} for _, by_config in rows
+    ]
+    values = [m.compressed() for block in maps for m in block.values() if m.count()]
+    vmin = float(min(v.min() for v in values)) if values else -10.0
+    vmax = float(max(v.max() for v in values)) if values else 0.0
+    axes = fig.subplots(len(rows) * rows_per_block, cols, squeeze=False)
+    image = None
+    for b, ((label, _), block) in enumerate(zip(rows, maps)):
+        for c in range(rows_per_block * cols):
+            ax = axes[b * rows_per_block + c // cols, c % cols]
+            if c >= n_configs:
+                ax.set_axis_off()
+                continue
+            _map_axes(ax, extent, f"{config_names[c]}")
+            ax.set_facecolor("white")
+            if c in block:
+                image = ax.imshow(
+                    block[c],
+                    origin="lower",
+                    extent=extent,
+                    cmap=HEATMAP_CMAP,
+                    vmin=vmin,
+                    vmax=vmax,
+                    interpolation="nearest",
+                    zorder=2,
+                )
+            draw_walls(ax, world, c)
+            if c % cols == 0 and label:
+                ax.set_ylabel(label, fontsize=10)
+    if image is not None:
+        bar = fig.colorbar(image, ax=axes, shrink=0.85, aspect=30)
+        bar.set_label("log probability of visitation (per bin)")
+
+
+# --------------------------------------------------------------------------------- trajectories
+def draw_trajectories(
+    ax, positions: np.ndarray, n_trajectories: int = 10, every: int = 10, markersize: float = 7
+) -> None:
+    """A point every ``every`` steps of the first trajectories, lighter early, darker late.
+
+    positions (n_traj, T+1, 2). One hue per trajectory; each point is the hue blended with white,
+    from 80% white at the first step to the full hue at the last.
+    """
+    palette = colormaps["tab10"].colors
+    for i, traj in enumerate(positions[:n_trajectories]):
+        points = traj[::every]
+        base = np.array(to_rgb(palette[i % len(palette)]))
+        strength = np.linspace(0.2, 1.0, len(points))[:, None]
+        colours = 1.0 - strength * (1.0 - base)
+        ax.plot(points[:, 0], points[:, 1], color=base, alpha=0.25, lw=0.6, zorder=4)
+        ax.scatter(points[:, 0], points[:, 1], c=colours, s=markersize, lw=0, zorder=5)
+
+
+def trajectory_grid(
+    fig: Figure,
+    world,
+    rows: Sequence[tuple[str, dict[int, np.ndarray]]],
+    config_names: Sequence[str],
+    n_trajectories: int = 10,
+    every: int = 10,
+    max_cols: int = 5,
+) -> None:
+    """Trajectory panels: one block per row (a seed, a run), one panel per configuration."""
+    n_configs = len(config_names)
+    cols = min(n_configs, max_cols)
+    rows_per_block = math.ceil(n_configs / cols)
+    some = next((p for _, by_c in rows for p in by_c.values()), None)
+    extent = world_extent(world, some)
+    axes = fig.subplots(len(rows) * rows_per_block, cols, squeeze=False)
+    for b, (label, by_config) in enumerate(rows):
+        for c in range(rows_per_block * cols):
+            ax = axes[b * rows_per_block + c // cols, c % cols]
+            if c >= n_configs:
+                ax.set_axis_off()
+                continue
+            _map_axes(ax, extent, f"{config_names[c]}")
+            draw_walls(ax, world, c)
+            if c in by_config:
+                draw_trajectories(ax, by_config[c], n_trajectories, every)
+            if c % cols == 0 and label:
+                ax.set_ylabel(label, fontsize=10)
+
+
+# ----------------------------------------------------------------------------- one run (trainer)
+def save_run_plots(
+    world,
+    positions_by_config: dict[int, np.ndarray],
+    out_dir: Path,
+    n_trajectories: int = 10,
+    every: int = 10,
+) -> list[Path]:
+    """Write ``heatmap.png`` and ``trajectories.png`` of one evaluation of one run into out_dir.
+
+    positions_by_config: {config: (n_traj, T+1, 2)} rollouts of the policy in each configuration.
+    """
+    out_dir = Path(out_dir)
+    names = list(getattr(world, "config_names", None) or [f"config {c}" for c in sorted(positions_by_config)])
+    n_configs = len(names)
+    cols = min(n_configs, 5)
+    rows = math.ceil(n_configs / cols)
+    some = next(iter(positions_by_config.values()))
+    n_traj, steps = some.shape[0], some.shape[1] - 1
+    world_name = getattr(world, "name", "world")
+
+    fig = new_figure(2.6 * cols + 1.2, 2.6 * rows + 0.6)
+    heatmap_grid(fig, world, [("", positions_by_config)], names)
+    fig.suptitle(f"{world_name}: log probability of state visitation ({n_traj} trajectories, T={steps})")
+    heatmap = save(fig, out_dir / "heatmap.png")
+
+    fig = new_figure(2.6 * cols, 2.6 * rows + 0.6)
+    trajectory_grid(fig, world, [("", positions_by_config)], names, n_trajectories, every)
+    fig.suptitle(
+        f"{world_name}: {min(n_trajectories, n_traj)} trajectories, a point every {every} steps "
+        "(lighter = earlier)",
+        fontsize=10,
+    )
+    trajectories = save(fig, out_dir / "trajectories.png")
+    return [heatmap, trajectories]

@@ -1,0 +1,419 @@
+"""Find run directories, load what the trainer wrote, and group runs that differ only by seed.
+
+A run directory is any directory holding ``run.json`` (the trainer's contract):
+
+    .hydra/config.yaml   composed config
+    run.json             status, epochs_done, env, algo, policy, seed, wind, config names/probs,
+                         free_area and log_free_area per configuration
+    epochs.csv           one row per epoch (entropy, objective, entropy_c<c>, kl, ...)
+    eval/final.npz       positions_c<c>: (n_traj, T+1, 2) rollouts of the final policy
+    finetune.csv         fine-tuning runs only: epoch, target, config, return, init, algo_init, seed
+
+Runs that cannot be used (unfinished, missing or corrupt files) are skipped with a warning and
+listed, with the reason, in the report; the rest of the report is still built.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from hmepol_cli.report.stats import final_value
+
+# Config keys that say how a run was executed, not what was run: never a reason to split groups.
+RUN_SPECIFIC_KEYS = {
+    "seed",
+    "resume",
+    "progress",
+    "threads",
+    "skip_finished",
+    "checkpoint_every",
+    "device",
+    "eval.every",
+    # The effective wind is read once (run.json) and stored under the synthetic key "wind".
+    "wind",
+    "env.wind",
+}
+RUN_SPECIFIC_PREFIXES = ("hydra",)
+
+# Short names of the keys that usually vary, for labels and table columns.
+SHORT_NAMES = {
+    "env.name": "env",
+    "algo.name": "algo",
+    "policy.name": "policy",
+    "policy.bptt": "bptt",
+    "algo.alpha": "alpha",
+    "algo.objective": "objective",
+}
+ALGO_ORDER = ("mepol", "alphamepol", "hmepol")
+REQUIRED_EPOCH_COLUMNS = ("epoch", "entropy")
+REQUIRED_FINETUNE_COLUMNS = ("epoch", "target", "config", "return", "algo_init", "seed")
+
+
+class SkippedRunWarning(UserWarning):
+    """A run directory that the report cannot use."""
+
+
+class RunError(Exception):
+    """Why one run directory cannot be used (one line)."""
+
+
+@dataclass(frozen=True)
+class SkippedRun:
+    path: Path
+    reason: str
+
+
+@dataclass
+class Run:
+    """One finished run: its flattened config and what it wrote."""
+
+    path: Path
+    config: dict[str, Any]  # dotted keys -> leaf values ("algo.name": "hmepol")
+    meta: dict[str, Any]  # run.json
+    epochs: pd.DataFrame | None = None  # epochs.csv (pre-training runs)
+    positions: dict[int, np.ndarray] | None = None  # eval/final.npz, config -> (n, T+1, 2)
+    finetune: pd.DataFrame | None = None  # finetune.csv (fine-tuning runs)
+
+    @property
+    def seed(self) -> int:
+        return int(self.meta.get("seed", self.config.get("seed", 0)))
+
+    @property
+    def env(self) -> str:
+        return str(self.config.get("env.name", self.meta.get("env", "?")))
+
+    @property
+    def algo(self) -> str:
+        return str(self.config.get("algo.name", self.meta.get("algo", "?")))
+
+    @property
+    def wind(self) -> float:
+        for value in (self.meta.get("wind"), self.config.get("env.wind"), self.config.get("wind")):
+            try:
+                return float(value)
+            except (TypeError, ValueError):
+                continue
+        return math.nan
+
+    @property
+    def n_configs(self) -> int:
+        names = self.meta.get("config_names")
+        if names:
+            return len(names)
+        if self.epochs is not None:
+            return len([c for c in self.epochs.columns if c.startswith("entropy_c")])
+        return len(self.positions or {})
+
+    @property
+    def config_names(self) -> list[str]:
+        names = self.meta.get("config_names") or []
+        return [str(n) for n in names] or [f"config {c}" for c in range(self.n_configs)]
+
+    @property
+    def config_probs(self) -> list[float]:
+        probs = self.meta.get("config_probs")
+        if probs and len(probs) == self.n_configs:
+            return [float(p) for p in probs]
+        return [1.0 / max(self.n_configs, 1)] * self.n_configs
+
+    @property
+    def log_free_area(self) -> list[float]:
+        logs = self.meta.get("log_free_area")
+        if logs and len(logs) == self.n_configs:
+            return [float(v) for v in logs]
+        areas = self.meta.get("free_area")
+        if areas and len(areas) == self.n_configs:
+            return [math.log(float(a)) for a in areas]
+        return [math.nan] * self.n_configs
+
+    @property
+    def is_pretraining(self) -> bool:
+        return self.epochs is not None and self.finetune is None
+
+    def entropy_curve(self, config: int | None = None) -> pd.Series:
+        """Entropy per epoch (nats), indexed by epoch: average (None) or one configuration."""
+        column = "entropy" if config is None else f"entropy_c{config}"
+        if self.epochs is None or column not in self.epochs:
+            return pd.Series(dtype=float)
+        return pd.Series(self.epochs[column].to_numpy(float), index=self.epochs["epoch"].to_numpy())
+
+    def final_entropy(self, config: int | None = None) -> float:
+        """Mean entropy over the last 10% of epochs (nats): average (None) or one configuration."""
+        return final_value(self.entropy_curve(config).to_numpy())
+
+
+@dataclass
+class Group:
+    """Runs that share every varying config key but the seed."""
+
+    key: tuple[tuple[str, Any], ...]  # (dotted key, value) of every key that varies across runs
+    runs: list[Run] = field(default_factory=list)
+    label: str = ""  # the series name inside its (env, wind) comparison, set by label_groups
+
+    @property
+    def first(self) -> Run:
+        return self.runs[0]
+
+    @property
+    def env(self) -> str:
+        return self.first.env
+
+    @property
+    def algo(self) -> str:
+        return self.first.algo
+
+    @property
+    def wind(self) -> float:
+        return self.first.wind
+
+    @property
+    def seeds(self) -> list[int]:
+        return sorted(r.seed for r in self.runs)
+
+    @property
+    def n_configs(self) -> int:
+        return self.first.n_configs
+
+    @property
+    def config_names(self) -> list[str]:
+        return self.first.config_names
+
+    def finals(self, config: int | None = None) -> dict[int, float]:
+        """Final entropy of every seed, {seed: nats}."""
+        return {r.seed: r.final_entropy(config) for r in self.runs}
+
+    def curves(self, config: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Entropy curves of all seeds aligned on epoch: (epochs,), (n_seeds, n_epochs)."""
+        table = pd.concat(
+            [r.entropy_curve(config).rename(r.seed) for r in self.runs], axis=1
+        ).sort_index()
+        return table.index.to_numpy(float), table.to_numpy(float).T
+
+    def representative(self) -> Run:
+        """The seed whose final average entropy is the median of the group (for maps)."""
+        with_eval = [r for r in self.runs if r.positions]
+        if not with_eval:
+            return self.first
+        ordered = sorted(with_eval, key=lambda r: (np.nan_to_num(r.final_entropy(), nan=-1e9), r.seed))
+        return ordered[(len(ordered) - 1) // 2]
+
+
+# ---------------------------------------------------------------------------------------- loading
+def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts -> {"a.b": leaf}; lists stay leaves (as tuples, so they can be compared)."""
+    out: dict[str, Any] = {}
+    if isinstance(node, dict):
+        for key, value in node.items():
+            out.update(flatten(value, f"{prefix}{key}."))
+    elif isinstance(node, list):
+        out[prefix[:-1]] = tuple(node)
+    else:
+        out[prefix[:-1]] = node
+    return out
+
+
+def load_config(path: Path) -> dict[str, Any]:
+    """Flattened ``.hydra/config.yaml``; interpolations are resolved where they can be."""
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(path)
+    try:
+        container = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:
+        # e.g. ${hydra:...} needs a running Hydra app: keep those values as written.
+        container = OmegaConf.to_container(cfg, resolve=False)
+    if not isinstance(container, dict):
+        raise RunError(f"{path.name} is not a mapping")
+    return flatten(container)
+
+
+def _read_csv(path: Path, required: tuple[str, ...]) -> pd.DataFrame:
+    if not path.is_file():
+        raise RunError(f"{path.name} is missing")
+    try:
+        frame = pd.read_csv(path)
+    except Exception as err:  # pandas raises several parser errors
+        raise RunError(f"{path.name} is corrupt ({type(err).__name__}: {err})".splitlines()[0]) from None
+    missing = [c for c in required if c not in frame.columns]
+    if missing:
+        raise RunError(f"{path.name} is corrupt (missing columns: {', '.join(missing)})")
+    if frame.empty:
+        raise RunError(f"{path.name} has no rows")
+    numeric = [c for c in ("epoch", "config", "return", "seed") if c in required]
+    numeric += [c for c in frame.columns if c.startswith("entropy")]
+    for column in numeric:
+        converted = pd.to_numeric(frame[column], errors="coerce")
+        if converted.isna().sum() > frame[column].isna().sum():
+            raise RunError(f"{path.name} is corrupt (non-numeric values in column {column!r})")
+        frame[column] = converted
+    if frame["epoch"].isna().any():
+        raise RunError(f"{path.name} is corrupt (empty epoch)")
+    return frame
+
+
+def _read_positions(path: Path, n_configs: int) -> dict[int, np.ndarray]:
+    if not path.is_file():
+        raise RunError("eval/final.npz is missing")
+    try:
+        with np.load(path) as data:
+            positions = {
+                int(k.removeprefix("positions_c")): np.asarray(data[k], dtype=np.float32)
+                for k in data.files
+                if k.startswith("positions_c")
+            }
+    except Exception as err:
+        raise RunError(f"eval/final.npz is unreadable ({type(err).__name__})") from None
+    if not positions:
+        raise RunError("eval/final.npz holds no positions_c<c> arrays")
+    for c, array in positions.items():
+        if array.ndim != 3 or array.shape[-1] != 2:
+            raise RunError(f"eval/final.npz positions_c{c} has shape {array.shape}, not (n, T+1, 2)")
+    if n_configs and sorted(positions) != list(range(n_configs)):
+        raise RunError(
+            f"eval/final.npz holds configurations {sorted(positions)}, expected 0..{n_configs - 1}"
+        )
+    return positions
+
+
+def load_run(path: Path) -> Run:
+    """Load one run directory; raise :class:`RunError` saying why it cannot be used."""
+    path = Path(path)
+    try:
+        meta = json.loads((path / "run.json").read_text())
+    except (OSError, ValueError) as err:
+        raise RunError(f"run.json is unreadable ({type(err).__name__})") from None
+    if not isinstance(meta, dict):
+        raise RunError("run.json is not a JSON object")
+    status = meta.get("status")
+    if status != "finished":
+        raise RunError(f"unfinished (status {status!r}, {meta.get('epochs_done', '?')} epochs done)")
+    config_path = path / ".hydra" / "config.yaml"
+    if config_path.is_file():
+        try:
+            config = load_config(config_path)
+        except RunError:
+            raise
+        except Exception as err:
+            raise RunError(f".hydra/config.yaml is unreadable ({type(err).__name__})") from None
+    else:  # fall back on what run.json says
+        config = {
+            "env.name": meta.get("env"),
+            "algo.name": meta.get("algo"),
+            "policy.name": meta.get("policy"),
+            "seed": meta.get("seed"),
+        }
+    run = Run(path=path, config=config, meta=meta)
+    if (path / "finetune.csv").exists():
+        # A fine-tuning run is reported only through its returns.
+        run.finetune = _read_csv(path / "finetune.csv", REQUIRED_FINETUNE_COLUMNS)
+        return run
+    run.epochs = _read_csv(path / "epochs.csv", REQUIRED_EPOCH_COLUMNS).sort_values("epoch")
+    run.positions = _read_positions(path / "eval" / "final.npz", run.n_configs)
+    return run
+
+
+def discover_runs(root: Path) -> tuple[list[Run], list[SkippedRun]]:
+    """Every run directory under ``root`` (any depth), loaded; the unusable ones with a reason."""
+    root = Path(root)
+    runs: list[Run] = []
+    skipped: list[SkippedRun] = []
+    for marker in sorted(root.rglob("run.json")):
+        try:
+            runs.append(load_run(marker.parent))
+        except RunError as err:
+            skipped.append(SkippedRun(marker.parent, str(err)))
+            warnings.warn(f"skipping run {marker.parent}: {err}", SkippedRunWarning, stacklevel=2)
+    return runs, skipped
+
+
+# --------------------------------------------------------------------------------------- grouping
+def _is_run_specific(key: str) -> bool:
+    return key in RUN_SPECIFIC_KEYS or key.startswith(RUN_SPECIFIC_PREFIXES)
+
+
+def _values(runs: list[Run], key: str) -> list[Any]:
+    return [run.wind if key == "wind" else run.config.get(key) for run in runs]
+
+
+def varying_keys(runs: list[Run]) -> list[str]:
+    """Config keys whose value differs between runs, seeds and run-specific keys excluded.
+
+    ``wind`` (the effective wind force, from run.json) stands for both ``wind`` and ``env.wind``.
+    """
+    keys = sorted({k for run in runs for k in run.config if not _is_run_specific(k)})
+    keys.append("wind")
+    out = []
+    for key in keys:
+        values = {repr(v) for v in _values(runs, key)}
+        if len(values) > 1:
+            out.append(key)
+    return out
+
+
+def _algo_rank(algo: str) -> tuple[int, str]:
+    return (ALGO_ORDER.index(algo) if algo in ALGO_ORDER else len(ALGO_ORDER), algo)
+
+
+def group_runs(runs: list[Run]) -> list[Group]:
+    """Split pre-training runs into groups that differ only by seed, ordered env, wind, algo.
+
+    Within a group every seed appears once; a repeated seed (the same run twice) keeps the
+    first directory in sorted order.
+    """
+    runs = [r for r in runs if r.is_pretraining]
+    keys = varying_keys(runs)
+    groups: dict[tuple, Group] = {}
+    for run in sorted(runs, key=lambda r: str(r.path)):
+        key = tuple((k, run.wind if k == "wind" else run.config.get(k)) for k in keys)
+        group = groups.setdefault(key, Group(key=key))
+        if run.seed not in {r.seed for r in group.runs}:
+            group.runs.append(run)
+    ordered = sorted(
+        groups.values(),
+        key=lambda g: (g.env, np.nan_to_num(g.wind, nan=-1.0), _algo_rank(g.algo), repr(g.key)),
+    )
+    label_groups(ordered)
+    return ordered
+
+
+def label_groups(groups: list[Group]) -> None:
+    """Name each group inside its env: the algorithm, plus any key that still tells it apart.
+
+    Keys that vary within an env but are fixed by the algorithm (HMepol always with the recursive
+    policy, alpha-Mepol always with CVaR) are left out of the label.
+    """
+    for env in {g.env for g in groups}:
+        members = [g for g in groups if g.env == env]
+        runs = [g.first for g in members]
+        keys = [k for k in varying_keys(runs) if k not in ("env.name", "algo.name", "wind")]
+        extra = []
+        for key in keys:
+            by_algo: dict[str, set[str]] = {}
+            for run in runs:
+                by_algo.setdefault(run.algo, set()).add(repr(run.config.get(key)))
+            if any(len(v) > 1 for v in by_algo.values()):
+                extra.append(key)
+        for group in members:
+            parts = [f"{SHORT_NAMES.get(k, k)}={group.first.config.get(k)}" for k in extra]
+            group.label = algo_label(group.algo) + (f" ({', '.join(parts)})" if parts else "")
+
+
+def algo_label(algo: str) -> str:
+    return {
+        "mepol": "Mepol",
+        "alphamepol": "α-Mepol",
+        "hmepol": "HMepol",
+        "scratch": "from scratch",
+    }.get(algo, algo)
+
+
+def format_wind(wind: float) -> str:
+    return "n/a" if not np.isfinite(wind) else f"{wind:g}"

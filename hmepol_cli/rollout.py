@@ -1,0 +1,69 @@
+"""Particles: trajectories of a policy in a world, all stepped together as tensors.
+
+Storage is allocated up front with shape (N, T, ...) (trajectories first, as the estimators
+group particles by trajectory); histories reset to h'_0 = 0 at every trajectory start.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from hmepol_cli.envs.base import NavigationWorld
+from hmepol_cli.policies.base import Policy
+
+
+@dataclass
+class Rollout:
+    """N trajectories of T steps."""
+
+    states: torch.Tensor  # (N, T + 1, d): s_0 .. s_T
+    actions: torch.Tensor  # (N, T, a): a_t drawn at s_t (before clipping by the world)
+    histories: torch.Tensor  # (N, T, H): h'_{t-1}, the history step t read (h'_{-1} = 0)
+    log_probs: torch.Tensor  # (N, T): log pi(a_t | h_t) of the sampling policy
+    configs: torch.Tensor  # (N,) long: configuration of each trajectory
+
+    @property
+    def particles(self) -> torch.Tensor:
+        """The states the actions produced, s_1 .. s_T: the particles of the entropy estimate. (N, T, d)"""
+        return self.states[:, 1:]
+
+    @property
+    def inputs(self) -> torch.Tensor:
+        """s_0 .. s_{T-1}, the states the policy acted on. (N, T, d)"""
+        return self.states[:, :-1]
+
+
+def draw_configs(
+    world: NavigationWorld, n_trajectories: int, batch_size: int, generator: torch.Generator | None
+) -> torch.Tensor:
+    """One configuration per mini-batch of B trajectories, drawn from p_M (thesis 4.2.3). (N,)"""
+    per_batch = world.sample_configs(n_trajectories // batch_size, generator)
+    return per_batch.repeat_interleave(batch_size)
+
+
+@torch.no_grad()
+def collect(
+    world: NavigationWorld,
+    policy: Policy,
+    configs: torch.Tensor,
+    horizon: int,
+    generator: torch.Generator | None = None,
+    deterministic: bool = False,
+) -> Rollout:
+    """Run one trajectory per entry of ``configs`` for ``horizon`` steps."""
+    n, device, dtype = configs.shape[0], world.device, world.dtype
+    states = torch.empty(n, horizon + 1, world.state_dim, device=device, dtype=dtype)
+    actions = torch.empty(n, horizon, world.action_dim, device=device, dtype=dtype)
+    histories = torch.empty(n, horizon, policy.history_size, device=device, dtype=dtype)
+    log_probs = torch.empty(n, horizon, device=device, dtype=dtype)
+    position = world.reset(configs, generator)
+    history = policy.initial_history(n, device, dtype)
+    states[:, 0] = position
+    for t in range(horizon):
+        histories[:, t] = history
+        action, log_prob, history = policy.act(position, history, generator, deterministic)
+        position = world.step(position, action, configs, generator)
+        actions[:, t], log_probs[:, t], states[:, t + 1] = action, log_prob, position
+    return Rollout(states, actions, histories, log_probs, configs)
