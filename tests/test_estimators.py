@@ -71,14 +71,15 @@ def test_both_neighbour_methods_match_brute_force(case):
             # N_i^k = i itself, then its k - 1 nearest others; R_i = distance to the k-th other.
             assert (nb.indices[j, :, 0] == torch.arange(x.shape[1])).all()
             np.testing.assert_array_equal(nb.indices[j, :, 1:].numpy(), order[:, : k - 1])
-            np.testing.assert_allclose(nb.radius[j].numpy(), dist[:, k - 1], rtol=1e-12)
+            # The torch path goes through a matrix product: ~1e-15 absolute error in float64.
+            np.testing.assert_allclose(nb.radius[j].numpy(), dist[:, k - 1], rtol=1e-9, atol=1e-12)
 
 
 def test_neighbour_methods_agree_in_float32():
-    # Measured at 2 x 2000 particles in [-1, 1]^2, k = 30: radii differ by <= 1.3e-6 (the
+    # Measured at 2000 particles in [-1, 1]^2, k = 30: radii differ by <= 1.3e-6 (the
     # torch path computes distances through a matrix product) and 3e-5 of the neighbour
     # slots swap between near-equidistant particles.
-    x = torch.rand(2, 2000, 2, generator=gen(0)) * 2 - 1
+    x = torch.rand(1, 2000, 2, generator=gen(0)) * 2 - 1
     a, b = (nearest_neighbours(x, 30, method) for method in METHODS)
     assert a.radius.dtype == b.radius.dtype == torch.float32
     torch.testing.assert_close(a.radius, b.radius, atol=1e-5, rtol=0)
@@ -313,7 +314,7 @@ def test_particles_line_up_with_their_weights():
     log_ratios = torch.zeros(n, t, dtype=F64)
     log_ratios[4, 2] = 1.0
     weights = importance_weights(log_ratios, b)
-    raised = (weights > weights.min()).nonzero().tolist()
+    raised = (weights > weights.min(dim=-1, keepdim=True).values).nonzero().tolist()
     traj_step = [(j * b + i // t, i % t) for j, i in raised]
     assert traj_step == [(4, 2), (4, 3)]
     assert [particles[j, i, 0].item() for j, i in raised] == [4 * t + 2, 4 * t + 3]
@@ -371,13 +372,13 @@ def test_cvar_by_hand():
 
 
 @few
-@given(
-    st.lists(st.floats(-100, 100), min_size=1, max_size=40),
-    st.floats(1e-3, 1.0),
-)
-def test_cvar_is_the_mean_of_the_lowest_ceil_alpha_m(values, alpha):
+@given(st.lists(st.floats(-100, 100), min_size=1, max_size=40), st.data())
+def test_cvar_is_the_mean_of_the_lowest_ceil_alpha_m(values, data):
+    m = len(values)
+    count = data.draw(st.integers(1, m))
+    # alpha in ((count - 1) / M, count / M]: ceil(alpha * M) = count.
+    alpha = (count - data.draw(st.floats(0.0, 0.99))) / m
     x = torch.tensor(values, dtype=F64)
-    count = max(1, math.ceil(round(alpha * len(values), 9)))
     expected = np.sort(values)[:count].mean()
     assert objectives.cvar(x, alpha).item() == pytest.approx(expected, rel=1e-9, abs=1e-9)
 

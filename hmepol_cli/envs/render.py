@@ -98,8 +98,10 @@ def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 
         ax.set_title(f"{c}: {world.config_names[c]}  (p = {world.config_probs[c]:.2g})\n"
                      f"{describe_config(world, c)}", fontsize=9.5)
         ax.tick_params(labelsize=7)
-    fig.suptitle(f"{world.name}: free area {world.free_area():.3g}; walls grey, start area "
-                 f"yellow, force as arrows", fontsize=11)
+    areas = sorted({round(world.free_area(c), 2) for c in range(n)})
+    area = f"{areas[0]:.3g}" if len(areas) == 1 else f"{areas[0]:.3g} to {areas[-1]:.3g}"
+    fig.suptitle(f"{world.name}: free area {area}; walls grey, start area yellow, "
+                 f"force as arrows", fontsize=11)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -110,35 +112,45 @@ def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 
 def force_arrows(world: NavigationWorld, config: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Where to draw force arrows: centres (M, 2), unit directions (M, 2), and arrow length.
 
-    A lattice over the region the force acts on, keeping the arrows that touch no wall.
+    A lattice over the region the force acts on, keeping the arrows that touch no wall. Gridworlds
+    try the lattice on block corners and the one on block centres and keep the fuller one, so
+    one-block corridors get arrows too.
     """
     a = world.arena
+    empty = np.zeros((0, 2)), np.zeros((0, 2)), 0.0
     if isinstance(world, CorridorWorld):
         if world.wind == 0:
-            return np.zeros((0, 2)), np.zeros((0, 2)), 0.0
+            return empty
         n = 16  # 0.75 apart: an arrow in every stub, four across the ring
-        lattice = _lattice(a.x0, a.y0, a.x1, a.y1, n)
-        points = torch.tensor(lattice, dtype=world.dtype, device=world.device)
-        configs = torch.full((len(lattice),), config, dtype=torch.long, device=world.device)
-        directions = world.wind_direction(points, configs).cpu().double().numpy()
+        lattices = [_lattice(a.x0, a.y0, a.x1, a.y1, n)]
+        points = torch.tensor(lattices[0], dtype=world.dtype, device=world.device)
+        configs = torch.full((len(points),), config, dtype=torch.long, device=world.device)
+        directions = [world.wind_direction(points, configs).cpu().double().numpy()]
+        length = 0.55 * (a.x1 - a.x0) / n
     elif isinstance(world, GridWorld) and world.slopes[config].mean > 0:
         slope = world.slopes[config]
         r = slope.region or a
-        x0, y0, x1, y1 = max(r.x0, a.x0), max(r.y0, a.y0), min(r.x1, a.x1), min(r.y1, a.y1)
-        n = 5  # 0.4 apart: on the corners of every other block, clear of 1-block walls
-        lattice = _lattice(a.x0, a.y0, a.x1, a.y1, n)
-        inside = ((lattice[:, 0] >= x0) & (lattice[:, 0] <= x1) & (lattice[:, 1] >= y0)
-                  & (lattice[:, 1] <= y1))
-        lattice = lattice[inside]
-        directions = np.tile(np.asarray(slope.direction, dtype=float), (len(lattice), 1))
+        n = 5  # 0.4 apart, every other block
+        block = (a.x1 - a.x0) / 10
+        lattices = []
+        for shift in (0.0, block / 2):
+            lattice = _lattice(a.x0, a.y0, a.x1, a.y1, n) - shift
+            inside = ((lattice[:, 0] >= max(r.x0, a.x0)) & (lattice[:, 0] <= min(r.x1, a.x1))
+                      & (lattice[:, 1] >= max(r.y0, a.y0)) & (lattice[:, 1] <= min(r.y1, a.y1)))
+            lattices.append(lattice[inside])
+        directions = [np.tile(np.asarray(slope.direction, dtype=float), (len(p), 1))
+                      for p in lattices]
+        length = 0.4 * (a.x1 - a.x0) / n  # 0.8 block: fits, with margins, a 1-block corridor
     else:
-        return np.zeros((0, 2)), np.zeros((0, 2)), 0.0
-    spacing = (a.x1 - a.x0) / n
-    length = 0.55 * spacing
-    keep = np.abs(directions).sum(axis=1) > 0
-    for offset in (-length / 2, 0.0, length / 2):
-        keep &= _free(world, config, lattice + offset * directions, margin=0.04 * spacing)
-    return lattice[keep], directions[keep], length
+        return empty
+    best = empty
+    for lattice, direction in zip(lattices, directions):
+        keep = np.abs(direction).sum(axis=1) > 0
+        for offset in (-length / 2, 0.0, length / 2):
+            keep &= _free(world, config, lattice + offset * direction, margin=0.1 * length)
+        if keep.sum() > len(best[0]):
+            best = lattice[keep], direction[keep], length
+    return best
 
 
 def _lattice(x0: float, y0: float, x1: float, y1: float, n: int) -> np.ndarray:

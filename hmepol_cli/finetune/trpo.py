@@ -161,11 +161,11 @@ class ValueFunction(nn.Module):
         self.horizon = horizon
         self.net = mlp([3, *hidden, 1])
         self.register_buffer("center", torch.tensor([(arena.x0 + arena.x1) / 2, (arena.y0 + arena.y1) / 2]))
-        self.register_buffer("half", torch.tensor([(arena.x1 - arena.x0) / 2, (arena.y1 - arena.y0) / 2]))
+        self.register_buffer("half_side", torch.tensor([(arena.x1 - arena.x0) / 2, (arena.y1 - arena.y0) / 2]))
 
     def forward(self, states: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
         """states (..., 2), steps (...) -> values (...)."""
-        x = (states - self.center.to(states.dtype)) / self.half.to(states.dtype)
+        x = (states - self.center.to(states.dtype)) / self.half_side.to(states.dtype)
         tau = (steps.to(states.dtype) / self.horizon).unsqueeze(-1)
         return self.net(torch.cat((x, tau), dim=-1)).squeeze(-1)
 
@@ -409,5 +409,5 @@ class TRPO:
                 self.value_optimizer.zero_grad()
                 loss.backward()
                 self.value_optimizer.step()
-                losses.append(float(loss))
+                losses.append(loss.item())
         return sum(losses) / max(1, len(losses))

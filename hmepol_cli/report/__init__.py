@@ -1,0 +1,44 @@
+"""``hmepol report``: aggregate finished runs into the thesis figures, tables and one HTML page.
+
+Data path: runs.py (find, load, group) -> stats.py (mean, t-intervals) -> figures.py / plots.py
+(PNG) -> summary.py (CSV, Markdown) -> html.py (index.html).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hmepol_cli.report.figures import make_figures
+from hmepol_cli.report.html import write_index
+from hmepol_cli.report.plots import save_run_plots
+from hmepol_cli.report.runs import SkippedRunWarning, discover_runs, group_runs
+from hmepol_cli.report.summary import write_summary
+
+
+def run_report(runs_root: Path, out_dir: Path) -> Path:
+    """Build the report of every finished run under ``runs_root`` into ``out_dir``.
+
+    Writes ``out_dir/index.html``, ``out_dir/figures/*.png``, ``summary.csv``,
+    ``differences.csv``, ``summary.md`` (and ``finetune.csv`` when there are fine-tuning runs);
+    returns the path of ``index.html``. Unusable runs are skipped with a warning and listed.
+    """
+    runs_root, out_dir = Path(runs_root), Path(out_dir)
+    if not runs_root.is_dir():
+        raise ValueError(f"runs root {str(runs_root)!r} does not exist or is not a directory")
+    runs, skipped = discover_runs(runs_root)
+    if not runs and not skipped:
+        raise ValueError(f"no runs under {str(runs_root)!r} (no directory holds a run.json)")
+    groups = group_runs(runs)
+    finetune_runs = [r for r in runs if r.finetune is not None]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    figures = make_figures(groups, finetune_runs, out_dir / "figures")
+    tables = write_summary(groups, finetune_runs, out_dir)
+    index = write_index(out_dir, runs_root, groups, finetune_runs, skipped, figures, tables)
+    print(
+        f"report: {len(runs)} runs used ({len(groups)} groups), {len(skipped)} skipped, "
+        f"{len(figures)} figures -> {index}"
+    )
+    return index
+
+
+__all__ = ["SkippedRunWarning", "run_report", "save_run_plots"]

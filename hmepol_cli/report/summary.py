@@ -1,0 +1,167 @@
+"""Summary tables: final entropy per group and configuration, differences between algorithms,
+and fine-tuning returns. Written as CSV (full precision) and Markdown (rounded).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from hmepol_cli.report.figures import average_bound, finetune_curves, finetune_frame
+from hmepol_cli.report.runs import Group, Run, algo_label
+from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
+
+
+def _config_rows(group: Group) -> list[tuple[int | None, str]]:
+    return [(None, "average")] + [(c, f"{c}: {n}") for c, n in enumerate(group.config_names)]
+
+
+def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
+    """One row per group and configuration: mean final entropy over seeds and its 95% CI."""
+    rows = []
+    for group in groups:
+        run = group.first
+        for config, name in _config_rows(group):
+            ci = mean_ci(list(group.finals(config).values()))
+            bound = average_bound(run) if config is None else run.log_free_area[config]
+            rows.append(
+                {
+                    "env": group.env,
+                    "wind": group.wind,
+                    "group": group.label,
+                    "config": name,
+                    "n_seeds": ci.n,
+                    "seeds": " ".join(map(str, group.seeds)),
+                    "mean_nats": ci.mean,
+                    "ci95_low": ci.low,
+                    "ci95_high": ci.high,
+                    "ci95_half_width": ci.half_width,
+                    "log_free_area": bound,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def difference_table(groups: list[Group]) -> pd.DataFrame:
+    """Every pair of groups with the same env and wind: final entropy of the later one minus the
+    earlier one (algorithm order Mepol, alpha-Mepol, HMepol), per configuration, with its 95% CI.
+
+    Paired t-interval when both groups ran the same seeds, Welch's t-interval otherwise
+    (the ``method`` column says which).
+    """
+    rows = []
+    by_setting: dict[tuple, list[Group]] = {}
+    for group in groups:
+        by_setting.setdefault((group.env, repr(group.wind)), []).append(group)
+    for members in by_setting.values():
+        for a, b in itertools.combinations(members, 2):
+            for config, name in _config_rows(a):
+                d = difference_ci(a.finals(config), b.finals(config))
+                rows.append(
+                    {
+                        "env": a.env,
+                        "wind": a.wind,
+                        "config": name,
+                        "comparison": f"{b.label} − {a.label}",
+                        "diff_nats": d.diff,
+                        "ci95_low": d.low,
+                        "ci95_high": d.high,
+                        "method": d.method,
+                        "n_a": d.n_a,
+                        "n_b": d.n_b,
+                    }
+                )
+    return pd.DataFrame(rows)
+
+
+def finetune_table(runs: list[Run]) -> pd.DataFrame:
+    """Per env, wind, configuration and initialisation: final return (mean over the last 10% of
+    epochs of each curve) with its CI over (seed, target) curves, and the first epoch at which
+    the mean curve reaches the Mepol-initialised curve's final mean."""
+    frame = finetune_frame(runs)
+    if frame.empty:
+        return pd.DataFrame()
+    rows = []
+    for (env, wind), part in frame.groupby(["env", "wind"], sort=False):
+        curves = finetune_curves(part)
+        mepol_final = {}
+        for (init, config), (_, data) in curves.items():
+            if init == "mepol":
+                mepol_final[config] = curve_ci(data)[0][-1]
+        for (init, config), (epochs, data) in sorted(curves.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+            ci = mean_ci([final_value(c) for c in data])
+            mean = curve_ci(data)[0]
+            target = mepol_final.get(config, math.nan)
+            reached = np.flatnonzero(mean >= target) if np.isfinite(target) else []
+            rows.append(
+                {
+                    "env": env,
+                    "wind": wind,
+                    "config": config,
+                    "init": "from scratch" if init == "scratch" else algo_label(init),
+                    "n_curves": ci.n,
+                    "final_return": ci.mean,
+                    "ci95_low": ci.low,
+                    "ci95_high": ci.high,
+                    "first_epoch_reaching_mepol_final": epochs[reached[0]] if len(reached) else math.nan,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def to_markdown(frame: pd.DataFrame, digits: int = 3) -> str:
+    """A GitHub Markdown table (numbers rounded; NaN shown as 'n/a')."""
+    if frame.empty:
+        return "_(none)_\n"
+
+    def cell(column: str, value) -> str:
+        if isinstance(value, float | np.floating):
+            if not np.isfinite(value):
+                return "n/a"
+            if column in ("wind", "first_epoch_reaching_mepol_final"):
+                return f"{value:g}"
+            return f"{value:.{digits}f}"
+        return str(value).replace("|", "\\|")
+
+    header = "| " + " | ".join(frame.columns) + " |"
+    rule = "|" + "|".join("---" for _ in frame.columns) + "|"
+    body = [
+        "| " + " | ".join(cell(c, v) for c, v in zip(frame.columns, row)) + " |"
+        for row in frame.itertuples(index=False)
+    ]
+    return "\n".join([header, rule, *body]) + "\n"
+
+
+def write_summary(
+    groups: list[Group], finetune_runs: list[Run], out_dir: Path
+) -> dict[str, pd.DataFrame]:
+    """Write summary.csv, differences.csv, finetune.csv and summary.md; return the tables."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tables = {
+        "summary": final_entropy_table(groups),
+        "differences": difference_table(groups),
+        "finetune": finetune_table(finetune_runs),
+    }
+    for name, table in tables.items():
+        if not table.empty:
+            table.to_csv(out_dir / f"{name}.csv", index=False)
+    text = [
+        "# hmepol report: summary\n",
+        "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs; then the "
+        "mean over seeds with a Student-t 95% confidence interval (n/a with one seed).\n",
+        "## Final entropy per group and configuration\n",
+        to_markdown(tables["summary"]),
+        "## Differences between algorithms (same env and wind)\n",
+        "Later minus earlier algorithm; paired t-interval when both ran the same seeds, Welch's "
+        "t-interval otherwise (column `method`).\n",
+        to_markdown(tables["differences"]),
+    ]
+    if not tables["finetune"].empty:
+        text += ["## Fine-tuning returns\n", to_markdown(tables["finetune"])]
+    (out_dir / "summary.md").write_text("\n".join(text))
+    return tables

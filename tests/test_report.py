@@ -1,0 +1,271 @@
+"""The report: discovery, grouping, t-intervals, skipped runs, figures and summary differences.
+
+Run directories are written by hand in the trainer's format (run.json, .hydra/config.yaml,
+epochs.csv, eval/final.npz, finetune.csv) with known numbers.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from hmepol_cli.report import SkippedRunWarning, run_report
+from hmepol_cli.report.runs import discover_runs, group_runs, varying_keys
+from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
+from hmepol_cli.report.summary import difference_table, final_entropy_table
+
+SLOPE_LOG_AREA = math.log(3.04)
+
+
+def write_run(
+    root: Path,
+    *,
+    env: str = "slope",
+    algo: str = "mepol",
+    policy: str = "markov",
+    seed: int = 0,
+    wind: float = 0.4,
+    epochs: int = 20,
+    final: float = 1.0,
+    status: str = "finished",
+    config_names: tuple[str, ...] = ("south", "north"),
+    config_probs: tuple[float, ...] = (0.8, 0.2),
+    free_area: float = 3.04,
+    n_traj: int = 10,
+    horizon: int = 40,
+    extent: float = 1.0,
+    name: str | None = None,
+) -> Path:
+    """One run directory whose entropy rises linearly to ``final`` (every configuration at
+    ``final - 0.1 * c``), so that the last-10% mean is known."""
+    run = root / (name or f"{env}-{algo}-wind{wind}-seed{seed}")
+    (run / ".hydra").mkdir(parents=True)
+    (run / "eval").mkdir()
+    objective, alpha = ("cvar", 0.2) if algo == "alphamepol" else ("mean", 1.0)
+    (run / ".hydra" / "config.yaml").write_text(
+        f"env:\n  name: {env}\n  wind: ${{wind}}\n"
+        f"algo:\n  name: {algo}\n  objective: {objective}\n  alpha: {alpha}\n  lr: 1.0e-05\n"
+        f"policy:\n  name: {policy}\n  bptt: '1'\n  hidden: [300, 300]\n"
+        f"seed: {seed}\nepochs: {epochs}\nwind: {wind}\nresume: null\nprogress: {seed % 2 == 0}\n"
+        f"device: cpu\n"
+    )
+    n_configs = len(config_names)
+    (run / "run.json").write_text(
+        json.dumps(
+            {
+                "status": status,
+                "epochs_done": epochs if status == "finished" else epochs // 2,
+                "env": env,
+                "algo": algo,
+                "policy": policy,
+                "seed": seed,
+                "wind": wind,
+                "config_names": list(config_names),
+                "config_probs": list(config_probs),
+                "free_area": [free_area] * n_configs,
+                "log_free_area": [math.log(free_area)] * n_configs,
+            }
+        )
+    )
+    ramp = np.linspace(0.0, 1.0, epochs)
+    table = {"epoch": np.arange(epochs), "entropy": final * ramp, "objective": final * ramp}
+    for c in range(n_configs):
+        table[f"entropy_c{c}"] = (final - 0.1 * c) * ramp
+    table |= {"entropy_iw": final * ramp, "kl": 0.1, "off_iters": 3, "backtracks": 0, "lr": 1e-5,
+              "seconds": 1.0, "wall_time": 1.0}
+    pd.DataFrame(table).to_csv(run / "epochs.csv", index=False)
+    rng = np.random.default_rng(seed)
+    steps = rng.normal(0, 0.05 * extent, size=(n_configs, n_traj, horizon, 2))
+    start = np.full((n_configs, n_traj, 1, 2), -0.75 * extent)
+    positions = np.clip(np.concatenate([start, start + steps.cumsum(axis=2)], axis=2), -extent, extent)
+    np.savez(run / "eval" / "final.npz",
+             **{f"positions_c{c}": positions[c].astype(np.float32) for c in range(n_configs)})
+    return run
+
+
+def write_finetune_run(root: Path, *, algo_init: str, seed: int, epochs: int = 10,
+                       env: str = "slope", wind: float = 0.4) -> Path:
+    run = root / f"finetune-{algo_init}-seed{seed}"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text(f"env:\n  name: {env}\nseed: {seed}\nwind: {wind}\n")
+    (run / "run.json").write_text(json.dumps({
+        "status": "finished", "epochs_done": epochs, "env": env, "algo": "trpo", "policy": "markov",
+        "seed": seed, "wind": wind, "config_names": ["south", "north"], "config_probs": [0.8, 0.2],
+        "free_area": [3.04, 3.04], "log_free_area": [SLOPE_LOG_AREA] * 2,
+    }))
+    speed = {"hmepol": 1.0, "mepol": 0.3, "scratch": 0.1}[algo_init]
+    rows = [
+        {"epoch": e, "target": t, "config": c, "return": min(1.0, speed * e / epochs) + 0.01 * t,
+         "init": "none" if algo_init == "scratch" else "some/run", "algo_init": algo_init, "seed": seed}
+        for e in range(epochs) for t in range(3) for c in range(2)
+    ]
+    pd.DataFrame(rows).to_csv(run / "finetune.csv", index=False)
+    return run
+
+
+# ------------------------------------------------------------------------------------------ stats
+def test_mean_ci_matches_hand_computed_t_interval():
+    ci = mean_ci([1.0, 2.0, 3.0, 4.0])
+    # s = sqrt(5/3) = 1.290994, t_{0.975,3} = 3.182446: 3.182446 * 1.290994 / 2 = 2.054260
+    assert ci.mean == pytest.approx(2.5)
+    assert ci.half_width == pytest.approx(2.054260, abs=1e-6)
+    assert (ci.low, ci.high) == pytest.approx((2.5 - 2.054260, 2.5 + 2.054260), abs=1e-6)
+
+
+def test_one_seed_has_no_interval():
+    ci = mean_ci([3.0])
+    assert ci.mean == 3.0 and ci.n == 1 and math.isnan(ci.half_width)
+    mean, half, n = curve_ci(np.array([[1.0, 2.0, np.nan], [3.0, np.nan, np.nan]]))
+    assert mean[:2] == pytest.approx([2.0, 2.0]) and math.isnan(mean[2])
+    assert list(n) == [2, 1, 0]
+    # two samples 1, 3: s = sqrt(2), t_{0.975,1} = 12.706205 -> 12.706205 * sqrt(2) / sqrt(2)
+    assert half[0] == pytest.approx(12.706205, abs=1e-5)
+    assert math.isnan(half[1]) and math.isnan(half[2])
+
+
+def test_difference_ci_welch_and_paired_by_hand():
+    # Welch: a = [1, 2, 3], b = [2, 4, 6, 8]; var_a/3 = 1/3, var_b/4 = (20/3)/4 = 5/3; se^2 = 2
+    # df = 4 / ((1/3)^2/2 + (5/3)^2/3) = 4 / (1/18 + 25/27) = 4.0755; t_{0.975,4.0755} = 2.7540
+    welch = difference_ci({0: 1, 1: 2, 2: 3}, {0: 2, 1: 4, 2: 6, 3: 8})
+    assert welch.method == "Welch t"
+    assert welch.diff == pytest.approx(3.0)
+    assert welch.half_width == pytest.approx(2.756285 * math.sqrt(2), rel=1e-6)
+    # Paired (same seeds): d = [1, 2, 3] -> mean 2, s = 1, t_{0.975,2} = 4.302653 / sqrt(3)
+    paired = difference_ci({0: 1, 1: 2, 2: 3}, {0: 2, 1: 4, 2: 6})
+    assert paired.method == "paired t"
+    assert paired.diff == pytest.approx(2.0)
+    assert paired.half_width == pytest.approx(4.302653 / math.sqrt(3), abs=1e-5)
+
+
+def test_final_value_is_mean_of_last_tenth_of_observed_epochs():
+    assert final_value(np.arange(20.0)) == pytest.approx(18.5)  # last 2 of 20
+    assert final_value([np.nan, 1.0, np.nan, 3.0]) == pytest.approx(3.0)  # last 1 of 2 observed
+    assert math.isnan(final_value([np.nan, np.nan]))
+
+
+# ---------------------------------------------------------------------------- discovery, groups
+def test_groups_split_by_varying_keys_not_seed(tmp_path):
+    for algo in ("mepol", "hmepol"):
+        for seed in (0, 1):
+            write_run(tmp_path / "sweep" / "deep", algo=algo, seed=seed,
+                      policy="recursive" if algo == "hmepol" else "markov")
+    runs, skipped = discover_runs(tmp_path)
+    assert len(runs) == 4 and skipped == []
+    # algo and the policy that goes with it vary; seed, progress (run-specific) do not count
+    assert varying_keys(runs) == ["algo.name", "policy.name"]
+    groups = group_runs(runs)
+    assert [(g.algo, g.seeds) for g in groups] == [("mepol", [0, 1]), ("hmepol", [0, 1])]
+    assert [g.label for g in groups] == ["Mepol", "HMepol"]  # policy is fixed by the algorithm
+
+
+def test_label_names_key_that_is_not_fixed_by_algorithm(tmp_path):
+    write_run(tmp_path, algo="hmepol", policy="recursive", name="a")
+    write_run(tmp_path, algo="hmepol", policy="gru", name="b")
+    groups = group_runs(discover_runs(tmp_path)[0])
+    assert sorted(g.label for g in groups) == ["HMepol (policy=gru)", "HMepol (policy=recursive)"]
+
+
+def test_wind_interpolation_and_top_level_wind_count_once(tmp_path):
+    for wind in (0.05, 0.4):
+        write_run(tmp_path, env="slope", algo="mepol", wind=wind)
+    runs, _ = discover_runs(tmp_path)
+    assert varying_keys(runs) == ["wind"]
+    assert [g.wind for g in group_runs(runs)] == [0.05, 0.4]
+
+
+# ------------------------------------------------------------------------- summary differences
+def test_summary_difference_equals_hand_computed(tmp_path):
+    finals = {"mepol": {0: 1.0, 1: 1.2, 2: 1.1}, "hmepol": {0: 1.5, 1: 1.4, 3: 1.9}}
+    for algo, by_seed in finals.items():
+        for seed, value in by_seed.items():
+            write_run(tmp_path, algo=algo, seed=seed, final=value, epochs=10)
+    groups = group_runs(discover_runs(tmp_path)[0])
+    # 10 epochs of a linear ramp 0..final: the last 10% is the last epoch, i.e. ``final``.
+    summary = final_entropy_table(groups).set_index(["group", "config"])
+    assert summary.loc[("Mepol", "average"), "mean_nats"] == pytest.approx(1.1)
+    assert summary.loc[("HMepol", "1: north"), "mean_nats"] == pytest.approx(1.6 - 0.1)
+    diff = difference_table(groups).set_index("config").loc["average"]
+    assert diff["comparison"] == "HMepol − Mepol"
+    assert diff["method"] == "Welch t"  # seeds {0,1,2} vs {0,1,3}: not paired
+    # a: mean 1.1, var 0.01; b: mean 1.6, var 0.07; se^2 = 0.08/3
+    # df = (0.08/3)^2 / ((0.01/3)^2/2 + (0.07/3)^2/2) = 2.56; t_{0.975,2.56} = 3.515420
+    se = math.sqrt(0.08 / 3)
+    assert diff["diff_nats"] == pytest.approx(0.5)
+    assert diff["ci95_high"] - diff["diff_nats"] == pytest.approx(3.515420 * se, rel=1e-6)
+
+
+# ----------------------------------------------------------------------------- the whole report
+def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
+    root = tmp_path / "runs"
+    for algo in ("mepol", "alphamepol", "hmepol"):
+        for seed in (0, 1):
+            write_run(root, algo=algo, seed=seed, final=1.0 + 0.1 * seed)
+    write_run(root, algo="hmepol", seed=7, status="running", name="unfinished")
+    corrupt = write_run(root, algo="hmepol", seed=8, name="corrupt")
+    (corrupt / "epochs.csv").write_bytes(b'epoch,entropy\n0,"1.0\n\x00\x01,zz,\n')
+    broken = write_run(root, algo="hmepol", seed=9, name="broken-eval")
+    (broken / "eval" / "final.npz").write_bytes(b"not a zip file")
+    for init, seed in (("mepol", 0), ("mepol", 1), ("hmepol", 0), ("hmepol", 1), ("scratch", 0)):
+        write_finetune_run(root, algo_init=init, seed=seed)
+
+    out = tmp_path / "report"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        index = run_report(root, out)
+    reasons = {Path(str(w.message).split(": ")[0].removeprefix("skipping run ")).name
+               for w in caught if issubclass(w.category, SkippedRunWarning)}
+    assert reasons == {"unfinished", "corrupt", "broken-eval"}
+    assert index == out / "index.html" and index.exists()
+    assert str(index) in capsys.readouterr().out
+
+    page = html.unescape(index.read_text())
+    for name in ("unfinished", "corrupt", "broken-eval"):
+        assert name in page
+    assert "unfinished (status 'running'" in page
+    figures = sorted(p.name for p in (out / "figures").glob("*.png"))
+    assert figures == sorted([
+        "slope_entropy_epochs.png",
+        "slope_entropy_epochs_by_config.png",
+        "slope_final_entropy_bars.png",
+        "slope_heatmaps.png",
+        "slope_trajectories_mepol.png",
+        "slope_trajectories_alpha-mepol.png",
+        "slope_trajectories_hmepol.png",
+        "slope_finetune_returns.png",
+    ])
+    for name in figures:
+        assert f'src="figures/{name}"' in page
+    summary = pd.read_csv(out / "summary.csv")
+    assert set(summary["n_seeds"]) == {2}
+    assert len(pd.read_csv(out / "differences.csv")) == 3 * 3  # 3 pairs x (average + 2 configs)
+    finetune = pd.read_csv(out / "finetune.csv")
+    hm = finetune[(finetune["init"] == "HMepol") & (finetune["config"] == 0)].iloc[0]
+    assert hm["n_curves"] == 6 and hm["first_epoch_reaching_mepol_final"] < 9
+    assert (out / "summary.md").read_text().count("HMepol − Mepol") == 3
+
+
+def test_report_refuses_missing_or_empty_root(tmp_path):
+    with pytest.raises(ValueError, match="does not exist"):
+        run_report(tmp_path / "nowhere", tmp_path / "out")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no runs"):
+        run_report(tmp_path / "empty", tmp_path / "out")
+
+
+def test_save_run_plots_writes_heatmap_and_trajectories(tmp_path):
+    from hmepol_cli.envs import make_world
+    from hmepol_cli.report import save_run_plots
+
+    world = make_world(type("Env", (), {"name": "slope", "wind": 0.0})())
+    rng = np.random.default_rng(0)
+    positions = {c: np.clip(rng.normal(0, 0.5, (5, 21, 2)), -1, 1).astype(np.float32) for c in range(2)}
+    paths = save_run_plots(world, positions, tmp_path / "eval")
+    assert sorted(p.name for p in paths) == ["heatmap.png", "trajectories.png"]
+    assert all(p.stat().st_size > 1000 for p in paths)
