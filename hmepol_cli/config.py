@@ -133,8 +133,9 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")
     if cfg.estimator.k <= 0:
         raise ConfigError(f"estimator.k={cfg.estimator.k!r} must be a whole number > 0")
-    if cfg.wind < 0 or cfg.env.wind < 0:
-        raise ConfigError(f"wind={cfg.env.wind!r} must be a number >= 0")
+    for key, value in (("wind", cfg.wind), ("env.wind", cfg.env.wind)):
+        if value < 0:
+            raise ConfigError(f"{key}={value!r} must be a number >= 0")
     for key in ("trajectories", "horizon", "batch_size", "max_off_iters"):
         _positive(f"algo.{key}", cfg.algo[key])
     for key in ("kl_threshold", "lr", "backtrack_coeff"):

@@ -66,11 +66,18 @@ def _kdtree_search(particles: torch.Tensor, k: int) -> tuple[torch.Tensor, torch
 
 def _torch_search(particles: torch.Tensor, k: int, chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
     x = particles.detach()
+    m, _, dim = x.shape
     idx_parts, dist_parts = [], []
     for start in range(0, x.shape[1], chunk):
-        d = torch.cdist(x[:, start : start + chunk], x)  # (M, c, P)
-        dist, idx = d.topk(k + 1, dim=-1, largest=False, sorted=True)
-        idx_parts.append(idx)
+        queries = x[:, start : start + chunk]
+        d = torch.cdist(queries, x)  # (M, c, P)
+        _, idx = d.topk(k + 1, dim=-1, largest=False, sorted=True)
+        # cdist's matrix-product shortcut leaves ~1e-4 (float32) between coincident particles,
+        # where kdtree says 0: recompute the candidates' distances from differences.
+        candidates = torch.gather(x, 1, idx.reshape(m, -1, 1).expand(-1, -1, dim))
+        dist = (candidates.view(*idx.shape, dim) - queries[:, :, None]).norm(dim=-1)
+        dist, order = dist.sort(dim=-1, stable=True)
+        idx_parts.append(idx.gather(-1, order))
         dist_parts.append(dist)
     return torch.cat(idx_parts, dim=1), torch.cat(dist_parts, dim=1)
 

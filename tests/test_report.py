@@ -78,33 +78,74 @@ def write_run(
     table = {"epoch": np.arange(epochs), "entropy": final * ramp, "objective": final * ramp}
     for c in range(n_configs):
         table[f"entropy_c{c}"] = (final - 0.1 * c) * ramp
-    table |= {"entropy_iw": final * ramp, "kl": 0.1, "off_iters": 3, "backtracks": 0, "lr": 1e-5,
-              "seconds": 1.0, "wall_time": 1.0}
+    table |= {
+        "entropy_iw": final * ramp,
+        "kl": 0.1,
+        "off_iters": 3,
+        "backtracks": 0,
+        "lr": 1e-5,
+        "seconds": 1.0,
+        "wall_time": 1.0,
+    }
     pd.DataFrame(table).to_csv(run / "epochs.csv", index=False)
     rng = np.random.default_rng(seed)
     steps = rng.normal(0, 0.05 * extent, size=(n_configs, n_traj, horizon, 2))
     start = np.full((n_configs, n_traj, 1, 2), -0.75 * extent)
-    positions = np.clip(np.concatenate([start, start + steps.cumsum(axis=2)], axis=2), -extent, extent)
-    np.savez(run / "eval" / "final.npz",
-             **{f"positions_c{c}": positions[c].astype(np.float32) for c in range(n_configs)})
+    positions = np.clip(
+        np.concatenate([start, start + steps.cumsum(axis=2)], axis=2), -extent, extent
+    )
+    np.savez(
+        run / "eval" / "final.npz",
+        **{f"positions_c{c}": positions[c].astype(np.float32) for c in range(n_configs)},
+    )
     return run
 
 
-def write_finetune_run(root: Path, *, algo_init: str, seed: int, epochs: int = 10,
-                       env: str = "slope", wind: float = 0.4) -> Path:
+def write_finetune_run(
+    root: Path,
+    *,
+    algo_init: str,
+    seed: int,
+    epochs: int = 10,
+    env: str = "slope",
+    wind: float = 0.4,
+) -> Path:
     run = root / f"finetune-{algo_init}-seed{seed}"
     (run / ".hydra").mkdir(parents=True)
-    (run / ".hydra" / "config.yaml").write_text(f"env:\n  name: {env}\nseed: {seed}\nwind: {wind}\n")
-    (run / "run.json").write_text(json.dumps({
-        "status": "finished", "epochs_done": epochs, "env": env, "algo": "trpo", "policy": "markov",
-        "seed": seed, "wind": wind, "config_names": ["south", "north"], "config_probs": [0.8, 0.2],
-        "free_area": [3.04, 3.04], "log_free_area": [SLOPE_LOG_AREA] * 2,
-    }))
+    (run / ".hydra" / "config.yaml").write_text(
+        f"env:\n  name: {env}\nseed: {seed}\nwind: {wind}\n"
+    )
+    (run / "run.json").write_text(
+        json.dumps(
+            {
+                "status": "finished",
+                "epochs_done": epochs,
+                "env": env,
+                "algo": "trpo",
+                "policy": "markov",
+                "seed": seed,
+                "wind": wind,
+                "config_names": ["south", "north"],
+                "config_probs": [0.8, 0.2],
+                "free_area": [3.04, 3.04],
+                "log_free_area": [SLOPE_LOG_AREA] * 2,
+            }
+        )
+    )
     speed = {"hmepol": 1.0, "mepol": 0.3, "scratch": 0.1}[algo_init]
     rows = [
-        {"epoch": e, "target": t, "config": c, "return": min(1.0, speed * e / epochs) + 0.01 * t,
-         "init": "none" if algo_init == "scratch" else "some/run", "algo_init": algo_init, "seed": seed}
-        for e in range(epochs) for t in range(3) for c in range(2)
+        {
+            "epoch": e,
+            "target": t,
+            "config": c,
+            "return": min(1.0, speed * e / epochs) + 0.01 * t,
+            "init": "none" if algo_init == "scratch" else "some/run",
+            "algo_init": algo_init,
+            "seed": seed,
+        }
+        for e in range(epochs)
+        for t in range(3)
+        for c in range(2)
     ]
     pd.DataFrame(rows).to_csv(run / "finetune.csv", index=False)
     return run
@@ -154,8 +195,12 @@ def test_final_value_is_mean_of_last_tenth_of_observed_epochs():
 def test_groups_split_by_varying_keys_not_seed(tmp_path):
     for algo in ("mepol", "hmepol"):
         for seed in (0, 1):
-            write_run(tmp_path / "sweep" / "deep", algo=algo, seed=seed,
-                      policy="recursive" if algo == "hmepol" else "markov")
+            write_run(
+                tmp_path / "sweep" / "deep",
+                algo=algo,
+                seed=seed,
+                policy="recursive" if algo == "hmepol" else "markov",
+            )
     runs, skipped = discover_runs(tmp_path)
     assert len(runs) == 4 and skipped == []
     # algo and the policy that goes with it vary; seed, progress (run-specific) do not count
@@ -219,8 +264,11 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         index = run_report(root, out)
-    reasons = {Path(str(w.message).split(": ")[0].removeprefix("skipping run ")).name
-               for w in caught if issubclass(w.category, SkippedRunWarning)}
+    reasons = {
+        Path(str(w.message).split(": ")[0].removeprefix("skipping run ")).name
+        for w in caught
+        if issubclass(w.category, SkippedRunWarning)
+    }
     assert reasons == {"unfinished", "corrupt", "broken-eval"}
     assert index == out / "index.html" and index.exists()
     assert str(index) in capsys.readouterr().out
@@ -230,16 +278,18 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
         assert name in page
     assert "unfinished (status 'running'" in page
     figures = sorted(p.name for p in (out / "figures").glob("*.png"))
-    assert figures == sorted([
-        "slope_entropy_epochs.png",
-        "slope_entropy_epochs_by_config.png",
-        "slope_final_entropy_bars.png",
-        "slope_heatmaps.png",
-        "slope_trajectories_mepol.png",
-        "slope_trajectories_alpha-mepol.png",
-        "slope_trajectories_hmepol.png",
-        "slope_finetune_returns.png",
-    ])
+    assert figures == sorted(
+        [
+            "slope_entropy_epochs.png",
+            "slope_entropy_epochs_by_config.png",
+            "slope_final_entropy_bars.png",
+            "slope_heatmaps.png",
+            "slope_trajectories_mepol.png",
+            "slope_trajectories_alpha-mepol.png",
+            "slope_trajectories_hmepol.png",
+            "slope_finetune_returns.png",
+        ]
+    )
     for name in figures:
         assert f'src="figures/{name}"' in page
     summary = pd.read_csv(out / "summary.csv")
@@ -265,7 +315,9 @@ def test_save_run_plots_writes_heatmap_and_trajectories(tmp_path):
 
     world = make_world(type("Env", (), {"name": "slope", "wind": 0.0})())
     rng = np.random.default_rng(0)
-    positions = {c: np.clip(rng.normal(0, 0.5, (5, 21, 2)), -1, 1).astype(np.float32) for c in range(2)}
+    positions = {
+        c: np.clip(rng.normal(0, 0.5, (5, 21, 2)), -1, 1).astype(np.float32) for c in range(2)
+    }
     paths = save_run_plots(world, positions, tmp_path / "eval")
     assert sorted(p.name for p in paths) == ["heatmap.png", "trajectories.png"]
     assert all(p.stat().st_size > 1000 for p in paths)

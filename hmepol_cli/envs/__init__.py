@@ -28,4 +28,9 @@ def make_world(env_cfg) -> NavigationWorld:
     return factory(env_cfg)
 
 
+# Gymnasium ids (hmepol/Slope-v0, ...) are registered on import; registering twice is a no-op.
+from hmepol_cli.envs.gym_api import register_envs  # noqa: E402
+
+register_envs()
+
 __all__ = ["Box", "ENVIRONMENTS", "NavigationWorld", "make_world"]

@@ -1,21 +1,24 @@
-"""Grid World with Corridor (thesis 5.2, Fig. 5.4): a room, one looping corridor, and a wind.
+r"""Grid World with Corridor (thesis 5.2, Fig. 5.4): a room, one looping corridor, and a wind.
 
-Layout on the arena [-6, 6]^2 (36 times the area of the slope world, same action bound 0.2)::
+The arena is [-6, 6]^2, 36 times the area of the slope world, with the same action bound (0.2).
+Config 0 (clockwise wind), one character per 0.5 x 1 cell, top row y in [5, 6]; ``#`` wall,
+``.`` room (no wind), arrows the wind (``/`` and ``\`` where it turns a corner)::
 
-    y=6  +-----------------------------+-+-----------------------------+
-         |  NW     top band (west)  WJ | | EJ   top band (east)     NE  |
-         |                             |B|                             |
-    y=3  |        +-----------+--+     | |     +--+-----------+        |
-         |        |   north   |WS| wall   |ES|   north   |        |
-    y=2  |   W    |   +-------+  +--------+  +-------+   |    E   |
-         |  band  |   |                              |   |  band  |
-         |        |   |   room [-2,2]^2, no wind     |   |        |
-         |        |   |   start box [-0.5,0.5]^2     |   |        |
-         |        |   +------------------------------+   |        |
-    y=-3 |        +--------------------------------------+        |
-         |  SW                  south band                    SE    |
-    y=-6 +------------------------------------------------------------+
-        x=-6     -3  -2      -1.5 -0.5 0.5 1.5          2   3       6
+           x = -6                   x = 6
+           +------------------------+
+           |//////>>>\\##//>>>\\\\\\|  y in [3, 6]: the ring's top band, cut by wall B (##)
+           |//////>>>\\##//>>>\\\\\\|
+           |//////>>>\\##//>>>\\\\\\|
+           |^^^^^^###vv##^^###vvvvvv|  y in [2, 3]: stubs WS (vv) and ES (^^)
+           |^^^^^^##........##vvvvvv|  y in [-2, 2]: the room; start box [-0.5, 0.5]^2
+           |^^^^^^##........##vvvvvv|
+           |^^^^^^##........##vvvvvv|
+           |^^^^^^##........##vvvvvv|
+           |^^^^^^############vvvvvv|  y in [-3, -2]: the room's south wall
+           |\\\\\\<<<<<<<<<<<<//////|  y in [-6, -3]: the ring's bottom band
+           |\\\\\\<<<<<<<<<<<<//////|
+           |\\\\\\<<<<<<<<<<<<//////|
+           +------------------------+
 
 - The room's interior is [-2, 2]^2; its walls are 1 thick and fill [-3, 3]^2 around it.
 - The ring corridor is everything with |x| or |y| in [3, 6] (width 3).
@@ -113,17 +116,18 @@ class CorridorWorld(NavigationWorld):
     def _build_tensors(self) -> None:
         super()._build_tensors()
         kw = dict(device=self.device, dtype=self.dtype)
-        self._wind_boxes = torch.tensor(
-            [[(b.x0, b.y0, b.x1, b.y1) for b, _ in f] for f in self.wind_field], **kw
-        )  # (C, K, 4)
-        self._wind_dirs = torch.tensor([[d for _, d in f] for f in self.wind_field], **kw)  # (C, K, 2)
+        boxes = [[(b.x0, b.y0, b.x1, b.y1) for b, _ in f] for f in self.wind_field]
+        directions = [[d for _, d in f] for f in self.wind_field]
+        self._wind_boxes = torch.tensor(boxes, **kw)  # (C, K, 4)
+        self._wind_dirs = torch.tensor(directions, **kw)  # (C, K, 2)
 
     def wind_direction(self, positions: torch.Tensor, configs: torch.Tensor) -> torch.Tensor:
         """Unit direction of the wind at each position, zero in the room. (N, 2), (N,) -> (N, 2)."""
         boxes = self._wind_boxes[configs]  # (N, K, 4)
         x, y = positions[:, :1], positions[:, 1:]
-        holds = (x >= boxes[..., 0]) & (x <= boxes[..., 2]) & (y >= boxes[..., 1]) & (y <= boxes[..., 3])
-        first = holds.to(torch.int8).argmax(dim=-1)  # first rectangle that holds the position
+        holds = (x >= boxes[..., 0]) & (x <= boxes[..., 2])
+        holds &= (y >= boxes[..., 1]) & (y <= boxes[..., 3])
+        first = holds.to(positions.dtype).argmax(dim=-1)  # the first rectangle that holds it
         direction = self._wind_dirs[configs].gather(1, first[:, None, None].expand(-1, 1, 2))[:, 0]
         r = self.room
         in_room = (x >= r.x0) & (x <= r.x1) & (y >= r.y0) & (y <= r.y1)

@@ -173,7 +173,8 @@ class NavigationVectorEnv(VectorEnv):
     action, draws a new configuration and start position, and returns them with reward 0 and
     terminated = truncated = False. All sub-environments start together, so with one horizon
     they also truncate together. ``reset(options={"config": c})`` takes one configuration for
-    all, or one per sub-environment; ``seed`` is one int for the whole batch (one random stream).
+    all, or one per sub-environment; ``options={"reset_mask": m}`` restarts only where the
+    boolean (N,) mask is True; ``seed`` is one int for the whole batch (one random stream).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
@@ -219,7 +220,10 @@ class NavigationVectorEnv(VectorEnv):
         if options.get("config") is not None:
             _check_config(self.world, options["config"])
             forced = torch.as_tensor(np.asarray(options["config"]), dtype=torch.long,
-                                     device=self.device)
+                                     device=self.device).reshape(-1)
+            if forced.numel() not in (1, self.num_envs):
+                raise ValueError(f"options['config'] has {forced.numel()} values; give 1 or "
+                                 f"num_envs={self.num_envs}")
             configs = forced.expand(self.num_envs).clone()
         self._start(mask, configs)
         return self._observations(), self._info()

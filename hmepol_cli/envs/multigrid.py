@@ -11,11 +11,11 @@ Configurations, drawn uniformly (p_M = 1/10 each; the thesis does not give p_M):
 ====  ==================  ==========  ==============================================
  0    four_rooms_north    north       the slope world's four rooms (thesis Fig. 5.1)
  1    zigzag_south        south       one corridor that zigzags up through the arena
- 2    pillars_south       south       open floor with five pillars
+ 2    pillars_south       south       open floor with four pillars
  3    spiral_east         east        a spiral corridor inside an outer ring
  4    serpentine_east     east        walls hanging alternately from top and bottom
  5    nine_rooms_east     east        a 3 x 3 grid of rooms joined by doors
- 6    blocks_southeast    south-east  four blocks around a central plaza
+ 6    blocks_southeast    south-east  three blocks and a bar around open lanes
  7    maze                none        a maze of one-block corridors
  8    halls               none        three long halls joined by narrow doors
  9    open                none        an open square with one central block

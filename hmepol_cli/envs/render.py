@@ -144,7 +144,7 @@ def force_arrows(world: NavigationWorld, config: int) -> tuple[np.ndarray, np.nd
     else:
         return empty
     best = empty
-    for lattice, direction in zip(lattices, directions):
+    for lattice, direction in zip(lattices, directions, strict=True):
         keep = np.abs(direction).sum(axis=1) > 0
         for offset in (-length / 2, 0.0, length / 2):
             keep &= _free(world, config, lattice + offset * direction, margin=0.1 * length)

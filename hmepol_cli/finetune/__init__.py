@@ -62,31 +62,54 @@ def parse_bptt(value: object) -> int | None:
 
 def trpo_settings(cfg: DictConfig) -> TRPOSettings:
     """Check every fine-tuning key that needs no world; one-line errors name the bad value."""
-    for key in ("epochs", "episodes", "horizon", "targets", "cg_iters", "backtrack_iters", "value_epochs", "value_batch"):
+    for key in (
+        "epochs",
+        "episodes",
+        "horizon",
+        "targets",
+        "cg_iters",
+        "backtrack_iters",
+        "value_epochs",
+        "value_batch",
+    ):
         _positive(cfg, key, integer=True)
     for key in ("max_kl", "value_lr"):
         _positive(cfg, key)
-    for key in ("gamma", "gae_lambda", "backtrack_coeff"):
+    for key in ("gamma", "gae_lambda", "backtrack_coeff", "fisher_fraction"):
         value = cfg[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
             raise ConfigError(f"{key}={value!r} must be a number in (0, 1]")
-    if isinstance(cfg.damping, bool) or not isinstance(cfg.damping, (int, float)) or cfg.damping < 0:
+    if (
+        isinstance(cfg.damping, bool)
+        or not isinstance(cfg.damping, (int, float))
+        or cfg.damping < 0
+    ):
         raise ConfigError(f"damping={cfg.damping!r} must be a number >= 0")
     if cfg.device not in ("cpu", "cuda", "auto"):
         raise ConfigError(f"device={cfg.device!r} is not allowed; choose one of: cpu, cuda, auto")
     goal = cfg.goal
     if isinstance(goal, str):
         if goal != "random":
-            raise ConfigError(f"goal={goal!r} is not allowed; use 'random' or a list of [x, y] centres")
+            raise ConfigError(
+                f"goal={goal!r} is not allowed; use 'random' or a list of [x, y] centres"
+            )
     else:
         points = OmegaConf.to_container(goal) if OmegaConf.is_config(goal) else goal
         if not points or not all(
-            isinstance(p, (list, tuple)) and len(p) == 2 and all(isinstance(v, (int, float)) for v in p)
+            isinstance(p, (list, tuple))
+            and len(p) == 2
+            and all(isinstance(v, (int, float)) for v in p)
             for p in points
         ):
-            raise ConfigError(f"goal={goal!r} is not allowed; use 'random' or a list of [x, y] centres")
-    if cfg.goal_size is not None and not (isinstance(cfg.goal_size, (int, float)) and cfg.goal_size > 0):
-        raise ConfigError(f"goal_size={cfg.goal_size!r} must be a number > 0 (or null: 0.1 x arena side)")
+            raise ConfigError(
+                f"goal={goal!r} is not allowed; use 'random' or a list of [x, y] centres"
+            )
+    if cfg.goal_size is not None and not (
+        isinstance(cfg.goal_size, (int, float)) and cfg.goal_size > 0
+    ):
+        raise ConfigError(
+            f"goal_size={cfg.goal_size!r} must be a number > 0 (or null: 0.1 x arena side)"
+        )
     hidden = list(cfg.value_hidden)
     if not all(isinstance(h, int) and h > 0 for h in hidden):
         raise ConfigError(f"value_hidden={hidden!r} must be a list of whole numbers > 0")
@@ -104,6 +127,7 @@ def trpo_settings(cfg: DictConfig) -> TRPOSettings:
         value_hidden=tuple(hidden),
         normalize_advantage=bool(cfg.normalize_advantage),
         bptt=parse_bptt(cfg.bptt),
+        fisher_fraction=float(cfg.fisher_fraction),
     )
 
 
@@ -111,7 +135,9 @@ def _is_scratch(init: object) -> bool:
     return init is None or str(init).strip().lower() in ("none", "null", "", SCRATCH)
 
 
-def initial_policy(cfg: DictConfig, device: torch.device) -> tuple[Policy | None, DictConfig, str, str]:
+def initial_policy(
+    cfg: DictConfig, device: torch.device
+) -> tuple[Policy | None, DictConfig, str, str]:
     """(pre-trained policy or None for scratch, env config, init label, algo_init)."""
     override = {k: v for k, v in (cfg.get("env") or {}).items() if v is not None}
     if _is_scratch(cfg.init):
@@ -119,11 +145,17 @@ def initial_policy(cfg: DictConfig, device: torch.device) -> tuple[Policy | None
         return None, env, "none", SCRATCH
     init_path = Path(str(cfg.init)).expanduser()
     if not init_path.exists():
-        raise ConfigError(f"init={str(cfg.init)!r} does not exist; give a run directory, a checkpoint file or none")
+        raise ConfigError(
+            f"init={str(cfg.init)!r} does not exist; give a run directory, checkpoint file or none"
+        )
     policy, run_cfg = load_trained_policy(init_path, device=device)
-    run_env = OmegaConf.to_container(run_cfg.env, resolve=True) if "env" in run_cfg else dict(DEFAULT_ENV)
+    run_env = (
+        OmegaConf.to_container(run_cfg.env, resolve=True) if "env" in run_cfg else dict(DEFAULT_ENV)
+    )
     if "name" in override and override["name"] != run_env.get("name"):
-        run_env = {"wind": run_env.get("wind", DEFAULT_ENV["wind"])}  # another world: keep only the wind
+        run_env = {
+            "wind": run_env.get("wind", DEFAULT_ENV["wind"])
+        }  # another world: keep only the wind
     env = OmegaConf.create({**DEFAULT_ENV, **run_env, **override})
     algo = OmegaConf.select(run_cfg, "algo.name", default="unknown")
     return policy, env, str(init_path.resolve()), str(algo)
@@ -146,13 +178,14 @@ def _configs(cfg: DictConfig, world: NavigationWorld) -> list[int]:
     for c in values:
         if isinstance(c, bool) or not isinstance(c, int) or not 0 <= c < world.n_configs:
             raise ConfigError(
-                f"config={c!r} is not a configuration of {world.name}; choose 0..{world.n_configs - 1} or null (all)"
+                f"config={c!r} is not a configuration of {world.name}; "
+                f"choose 0..{world.n_configs - 1} or null (all)"
             )
     return [int(c) for c in values]
 
 
 def _run_seed(seed: int, config: int, target: int) -> int:
-    """Independent stream per (seed, configuration, target): each fine-tuning is reproducible alone."""
+    """A stream per (seed, configuration, target): each fine-tuning is reproducible alone."""
     return int(np.random.SeedSequence([seed, config, target]).generate_state(1)[0])
 
 
@@ -165,17 +198,29 @@ def finetune(cfg: DictConfig) -> Path:
         torch.set_num_threads(int(cfg.threads))
     pretrained, env_cfg, init_label, algo_init = initial_policy(cfg, device)
     if env_cfg.name not in ENVIRONMENTS:
-        raise ConfigError(f"env.name={env_cfg.name!r} is not allowed; choose one of: {', '.join(ENVIRONMENTS)}")
+        raise ConfigError(
+            f"env.name={env_cfg.name!r} is not allowed; choose one of: {', '.join(ENVIRONMENTS)}"
+        )
     if env_cfg.get("wind") is not None and env_cfg.wind < 0:
         raise ConfigError(f"env.wind={env_cfg.wind!r} must be a number >= 0")
     if pretrained is None and cfg.get("policy") is None:
-        raise ConfigError("policy=None: init=none trains a fresh policy; choose policy=markov or recursive")
+        raise ConfigError(
+            "policy=None: init=none trains a fresh policy; choose policy=markov or recursive"
+        )
     world = make_world(env_cfg).to(device, torch.float32)
     configs = _configs(cfg, world)
     goal = cfg.goal if isinstance(cfg.goal, str) else OmegaConf.to_container(cfg.goal)
     try:
         tasks = {
-            c: make_tasks(world, c, int(cfg.horizon), goal, int(cfg.targets), int(cfg.goal_seed), cfg.goal_size)
+            c: make_tasks(
+                world,
+                c,
+                int(cfg.horizon),
+                goal,
+                int(cfg.targets),
+                int(cfg.goal_seed),
+                cfg.goal_size,
+            )
             for c in configs
         }
     except TargetError as error:
@@ -187,7 +232,12 @@ def finetune(cfg: DictConfig) -> Path:
     csv_path = out_dir / FINETUNE_CSV
     rows: list[dict] = []
     total = sum(len(t) for t in tasks.values()) * int(cfg.epochs)
-    bar = tqdm(total=total, desc=f"finetune {env_cfg.name}/{algo_init}", disable=not cfg.progress, dynamic_ncols=True)
+    bar = tqdm(
+        total=total,
+        desc=f"finetune {env_cfg.name}/{algo_init}",
+        disable=not cfg.progress,
+        dynamic_ncols=True,
+    )
     for c in configs:
         for k, task in enumerate(tasks[c]):
             run_seed = _run_seed(int(cfg.seed), c, k)
@@ -248,7 +298,11 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def _targets_info(
-    world: NavigationWorld, tasks: dict[int, list[GoalTask]], env_cfg: DictConfig, init: str, algo_init: str
+    world: NavigationWorld,
+    tasks: dict[int, list[GoalTask]],
+    env_cfg: DictConfig,
+    init: str,
+    algo_init: str,
 ) -> dict:
     return {
         "env": OmegaConf.to_container(env_cfg, resolve=True),

@@ -22,7 +22,8 @@ ratios start at 0 and 1 whatever the choice.
 The Gaussian KL is analytic. The policy interface exposes log-likelihoods, not means, so the KL
 is written through them: for diagonal Gaussians with the sampling mean mu_0 (stored during the
 rollout) and log-std log sigma_0,
-    KL(pi_0 || pi) = -log pi(mu_0 | h) - sum log sigma_0 + sum sigma_0^2 / (2 sigma^2) - d/2 (1 + log 2 pi),
+    KL(pi_0 || pi) = -log pi(mu_0 | h) - sum log sigma_0 + sum sigma_0^2 / (2 sigma^2)
+                     - d/2 (1 + log 2 pi),
 which is the closed form sum[log sigma/sigma_0 + (sigma_0^2 + (mu_0 - mu)^2) / (2 sigma^2) - 1/2].
 
 The value function reads the state (scaled to the arena) and the time left, t / T, never the
@@ -59,6 +60,10 @@ class TRPOSettings:
     value_hidden: tuple[int, ...] = (64, 64)
     normalize_advantage: bool = True
     bptt: int | None = 1
+    # Share of the episodes whose KL Hessian F is used in the conjugate-gradient solve (the
+    # Fisher-vector products dominate an update's cost). The line search always checks the KL
+    # on every stored trajectory, so the bound holds whatever the share.
+    fisher_fraction: float = 1.0
 
 
 # --------------------------------------------------------------------------- rollout
@@ -81,6 +86,11 @@ class GoalRollout:
     def inputs(self) -> torch.Tensor:
         """s_0 .. s_{T-1}, the states the policy acted on. (N, T, d)"""
         return self.states[:, :-1]
+
+    def episodes(self, index: torch.Tensor) -> GoalRollout:
+        """The rollout of the episodes in ``index`` only."""
+        picked = {k: v[index] for k, v in vars(self).items() if k not in ("log_std", "horizon")}
+        return GoalRollout(**picked, log_std=self.log_std, horizon=self.horizon)
 
     @property
     def returns(self) -> torch.Tensor:
@@ -154,14 +164,18 @@ def collect_goal(
 
 # --------------------------------------------------------------------------- value, GAE
 class ValueFunction(nn.Module):
-    """V(s_t, t / T): an MLP on the state scaled to [-1, 1] and the elapsed fraction of the horizon."""
+    """V(s_t, t / T): an MLP on the state scaled to [-1, 1] and the elapsed share of the horizon."""
 
     def __init__(self, arena: Box, horizon: int, hidden: tuple[int, ...] = (64, 64)) -> None:
         super().__init__()
         self.horizon = horizon
         self.net = mlp([3, *hidden, 1])
-        self.register_buffer("center", torch.tensor([(arena.x0 + arena.x1) / 2, (arena.y0 + arena.y1) / 2]))
-        self.register_buffer("half_side", torch.tensor([(arena.x1 - arena.x0) / 2, (arena.y1 - arena.y0) / 2]))
+        self.register_buffer(
+            "center", torch.tensor([(arena.x0 + arena.x1) / 2, (arena.y0 + arena.y1) / 2])
+        )
+        self.register_buffer(
+            "half_side", torch.tensor([(arena.x1 - arena.x0) / 2, (arena.y1 - arena.y0) / 2])
+        )
 
     def forward(self, states: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
         """states (..., 2), steps (...) -> values (...)."""
@@ -195,12 +209,20 @@ def gae(
 
 # --------------------------------------------------------------------------- the solver pieces
 def flat_grad(
-    output: torch.Tensor, params: list[torch.Tensor], create_graph: bool = False, retain_graph: bool | None = None
+    output: torch.Tensor,
+    params: list[torch.Tensor],
+    create_graph: bool = False,
+    retain_graph: bool | None = None,
 ) -> torch.Tensor:
     grads = torch.autograd.grad(
         output, params, create_graph=create_graph, retain_graph=retain_graph, allow_unused=True
     )
-    return torch.cat([(torch.zeros_like(p) if g is None else g).reshape(-1) for g, p in zip(grads, params)])
+    return torch.cat(
+        [
+            (torch.zeros_like(p) if g is None else g).reshape(-1)
+            for g, p in zip(grads, params, strict=True)
+        ]
+    )
 
 
 def get_flat(params: list[torch.Tensor]) -> torch.Tensor:
@@ -216,7 +238,10 @@ def set_flat(params: list[torch.Tensor], flat: torch.Tensor) -> None:
 
 
 def conjugate_gradient(
-    matvec: Callable[[torch.Tensor], torch.Tensor], b: torch.Tensor, iters: int = 10, tol: float = 1e-10
+    matvec: Callable[[torch.Tensor], torch.Tensor],
+    b: torch.Tensor,
+    iters: int = 10,
+    tol: float = 1e-10,
 ) -> torch.Tensor:
     """Approximate x = A^-1 b for a symmetric positive-definite A given as ``matvec``."""
     x = torch.zeros_like(b)
@@ -281,7 +306,12 @@ def line_search(
     for i in range(tries):
         set_flat(params, start + fraction * full_step)
         objective, kl = evaluate()
-        if math.isfinite(objective) and math.isfinite(kl) and kl <= max_kl and objective > base_objective:
+        if (
+            math.isfinite(objective)
+            and math.isfinite(kl)
+            and kl <= max_kl
+            and objective > base_objective
+        ):
             return LineSearchResult(True, objective, kl, fraction, i + 1)
         fraction *= shrink
     set_flat(params, start)
@@ -290,7 +320,7 @@ def line_search(
 
 # --------------------------------------------------------------------------- the update
 def gaussian_kl(policy: Policy, rollout: GoalRollout, bptt: int | None) -> torch.Tensor:
-    """KL(pi_0(.|h_t) || pi_theta(.|h_t)) at every stored step, analytic (module docstring). (N, T)"""
+    """KL(pi_0(.|h_t) || pi_theta(.|h_t)) at every stored step, in closed form. (N, T)"""
     d = rollout.means.shape[-1]
     log_std_0 = rollout.log_std
     log_lik = policy.log_prob(rollout.inputs, rollout.means, rollout.histories, bptt=bptt)
@@ -325,7 +355,9 @@ class TRPO:
     ) -> None:
         self.policy, self.settings, self.generator = policy, settings, generator
         device = policy.log_std.device
-        self.value = ValueFunction(world.arena, horizon, settings.value_hidden).to(device, world.dtype)
+        self.value = ValueFunction(world.arena, horizon, settings.value_hidden).to(
+            device, world.dtype
+        )
         self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=settings.value_lr)
         self.params = [p for p in policy.parameters() if p.requires_grad]
 
@@ -336,7 +368,7 @@ class TRPO:
         steps = torch.arange(t_len + 1, device=rollout.states.device).expand(n, -1)
         with torch.no_grad():
             v = self.value(rollout.states, steps)  # V(s_t), t = 0..T'
-        timeout = (steps[:, 1:] >= rollout.horizon)  # the step that spends the last of the horizon
+        timeout = steps[:, 1:] >= rollout.horizon  # the step that spends the last of the horizon
         ends = rollout.success | timeout
         next_values = torch.where(ends, torch.zeros_like(v[:, 1:]), v[:, 1:])
         adv = gae(rollout.rewards, v[:, :-1], next_values, ends, s.gamma, s.gae_lambda)
@@ -345,6 +377,7 @@ class TRPO:
     def update(self, rollout: GoalRollout) -> UpdateStats:
         s, policy = self.settings, self.policy
         mask = rollout.alive.to(rollout.rewards.dtype)
+        # 1. advantages by GAE(lambda)
         advantages, targets = self.advantages(rollout)
         if s.normalize_advantage:
             mean = masked_mean(advantages, mask)
@@ -361,16 +394,17 @@ class TRPO:
         def mean_kl() -> torch.Tensor:
             return masked_mean(gaussian_kl(policy, rollout, s.bptt), mask)
 
+        # 2. policy gradient g; 3. s ~= F^-1 g by conjugate gradient on Fisher-vector products
         objective = surrogate()
         g = flat_grad(objective, self.params)
-        fvp = fisher_vector_product(mean_kl(), self.params, s.damping)
+        fvp = fisher_vector_product(self.fisher_kl(rollout), self.params, s.damping)
         direction = conjugate_gradient(fvp, g, s.cg_iters)
         curvature = float(direction @ fvp(direction))  # s^T F s
         base = float(objective.detach())
         if not curvature > 0 or not math.isfinite(curvature):
             result = LineSearchResult(False, base, 0.0, 0.0, 0)
             expected = 0.0
-        else:
+        else:  # 4. the step scaled to the KL bound, then the backtracking line search
             full_step = math.sqrt(2 * s.max_kl / curvature) * direction  # 1/2 s^T F s = delta
             expected = float(g @ full_step)
 
@@ -379,9 +413,15 @@ class TRPO:
                 return float(surrogate()), float(mean_kl())
 
             result = line_search(
-                self.params, full_step, evaluate, base, s.max_kl, s.backtrack_iters, s.backtrack_coeff
+                self.params,
+                full_step,
+                evaluate,
+                base,
+                s.max_kl,
+                s.backtrack_iters,
+                s.backtrack_coeff,
             )
-        value_loss = self.fit_value(rollout, targets, mask)
+        value_loss = self.fit_value(rollout, targets, mask)  # 5. the value function
         return UpdateStats(
             kl=result.kl,
             accepted=result.accepted,
@@ -390,6 +430,16 @@ class TRPO:
             expected_gain=expected,
             value_loss=value_loss,
         )
+
+    def fisher_kl(self, rollout: GoalRollout) -> torch.Tensor:
+        """Mean KL (with its graph) over the share ``fisher_fraction`` of the episodes."""
+        n = rollout.alive.shape[0]
+        keep = max(1, round(self.settings.fisher_fraction * n))
+        if keep < n:
+            index = torch.randperm(n, device=rollout.alive.device, generator=self.generator)[:keep]
+            rollout = rollout.episodes(index)
+        mask = rollout.alive.to(rollout.rewards.dtype)
+        return masked_mean(gaussian_kl(self.policy, rollout, self.settings.bptt), mask)
 
     def fit_value(self, rollout: GoalRollout, targets: torch.Tensor, mask: torch.Tensor) -> float:
         """Regress V on the lambda-returns of the live steps, in shuffled mini-batches."""

@@ -32,6 +32,7 @@ from hmepol_cli.report.stats import curve_ci, mean_ci
 
 MAX_CONFIG_BARS = 5  # more configurations than this (multigrid): bars for average and config 0
 MAX_TRAJECTORY_SEEDS = 3
+HATCHES = ("", "//", "..", "xx")
 
 # Which thesis figure each kind of figure reproduces, per environment.
 THESIS_FIGURES = {
@@ -65,12 +66,14 @@ class FigureRecord:
 class Style:
     colour: str
     linestyle: object
+    hatch: str  # for bars: the second series of one algorithm is hatched
     label: str
 
 
 # ------------------------------------------------------------------------------------- helpers
 def series_styles(groups: Iterable[Group]) -> dict[str, Style]:
-    """label -> style: the algorithm's colour; a second series of one algorithm gets a new dash."""
+    """label -> style: the algorithm's colour; a second series of one algorithm gets a new dash
+    (and hatching on bars)."""
     styles: dict[str, Style] = {}
     per_algo: dict[str, int] = {}
     for group in groups:
@@ -78,7 +81,12 @@ def series_styles(groups: Iterable[Group]) -> dict[str, Style]:
             continue
         k = per_algo.get(group.algo, 0)
         per_algo[group.algo] = k + 1
-        styles[group.label] = Style(algo_colour(group.algo), LINESTYLES[k % len(LINESTYLES)], group.label)
+        styles[group.label] = Style(
+            algo_colour(group.algo),
+            LINESTYLES[k % len(LINESTYLES)],
+            HATCHES[k % len(HATCHES)],
+            group.label,
+        )
     return styles
 
 
@@ -101,12 +109,29 @@ def winds_of(groups: list[Group]) -> list[float]:
     return sorted({g.wind for g in groups}, key=lambda w: np.nan_to_num(w, nan=-1.0))
 
 
+def at_wind(groups: list[Group], wind: float) -> list[Group]:
+    return [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
+
+
+def n_text(n: int) -> str:
+    """Legend suffix: the number of seeds, and that one seed has no interval."""
+    return f"n={n}" if n > 1 else f"n={n}, no CI"
+
+
 def wind_tag(wind: float, several: bool) -> str:
     return f"_wind{format_wind(wind)}" if several else ""
 
 
 def wind_title(wind: float, several: bool) -> str:
     return f", wind {format_wind(wind)}" if several else ""
+
+
+def _seeds(n: int) -> str:
+    return f"{n} seed{'s' if n != 1 else ''}"
+
+
+def _median_of(n: int) -> str:
+    return "the only seed" if n == 1 else f"median of {n} seeds"
 
 
 def seeds_text(groups: list[Group]) -> str:
@@ -149,7 +174,14 @@ def draw_curve(ax, group: Group, style: Style, config: int | None) -> None:
         return
     mean, half, _ = curve_ci(curves)
     n = len(group.runs)
-    ax.plot(epochs, mean, color=style.colour, ls=style.linestyle, lw=1.5, label=f"{style.label} (n={n})")
+    ax.plot(
+        epochs,
+        mean,
+        color=style.colour,
+        ls=style.linestyle,
+        lw=1.5,
+        label=f"{style.label} ({n_text(n)})",
+    )
     if np.isfinite(half).any():
         ax.fill_between(epochs, mean - half, mean + half, color=style.colour, alpha=0.2, lw=0)
 
@@ -158,14 +190,17 @@ def _legend(fig, axes) -> None:
     """One legend for the figure, below the panels, from the union of the panels' handles."""
     seen: dict[str, object] = {}
     for ax in np.ravel(axes):
-        for handle, label in zip(*ax.get_legend_handles_labels()):
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
             seen.setdefault(label, handle)
     if seen:
+        # As many columns as fit the figure's width (about 0.075 inch a character at 10 pt).
+        entry = 0.075 * max(map(len, seen)) + 0.7
+        cols = max(1, min(len(seen), int(fig.get_figwidth() / entry)))
         fig.legend(
             list(seen.values()),
             list(seen.keys()),
             loc="outside lower center",
-            ncols=min(len(seen), 4),
+            ncols=cols,
             frameon=False,
         )
 
@@ -182,7 +217,7 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
     axes = fig.subplots(rows, cols, squeeze=False, sharey=True)
     for i, wind in enumerate(winds):
         ax = axes[i // cols, i % cols]
-        members = [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
+        members = at_wind(groups, wind)
         for group in members:
             draw_curve(ax, group, styles[group.label], None)
         draw_bound(ax, average_bound(members[0].first))
@@ -193,7 +228,7 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     compared = " vs ".join(styles)
-    fig.suptitle(f"{env}: average entropy per epoch, {compared}")
+    fig.suptitle(f"{env}: average entropy per epoch (mean, 95% CI over seeds)")
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_entropy_epochs.png")
     caption = (
@@ -203,8 +238,15 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
         + f". Line: mean over seeds; band: Student-t 95% CI ({seeds_text(groups)}). "
         "Dashed: log(free area) weighted by p_M, the entropy of a uniform visitation."
     )
-    return [FigureRecord(path, f"{env}: average entropy per epoch", caption,
-                         THESIS_FIGURES.get((env, "curves"), ""), env)]
+    return [
+        FigureRecord(
+            path,
+            f"{env}: average entropy per epoch",
+            caption,
+            THESIS_FIGURES.get((env, "curves"), ""),
+            env,
+        )
+    ]
 
 
 def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
@@ -219,7 +261,7 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
     fig = new_figure(4.0 * cols, 3.0 * per_wind * len(winds) + 0.6)
     axes = fig.subplots(per_wind * len(winds), cols, squeeze=False, sharey=True)
     for w, wind in enumerate(winds):
-        members = [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
+        members = at_wind(groups, wind)
         for c in range(per_wind * cols):
             ax = axes[w * per_wind + c // cols, c % cols]
             if c >= n_configs:
@@ -234,7 +276,7 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
                 ax.set_ylabel("entropy (nats)")
             ax.grid(alpha=0.3)
     compared = " vs ".join(styles)
-    fig.suptitle(f"{env}: entropy per epoch in each configuration, {compared}")
+    fig.suptitle(f"{env}: entropy per epoch in each configuration (mean, 95% CI over seeds)")
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_entropy_epochs_by_config.png")
     caption = (
@@ -243,8 +285,15 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
         f"({seeds_text(groups)}); gaps are epochs where no seed drew that configuration. "
         "Dashed: log(free area) of the configuration."
     )
-    return [FigureRecord(path, f"{env}: entropy per epoch per configuration", caption,
-                         THESIS_FIGURES.get((env, "curves_by_config"), ""), env)]
+    return [
+        FigureRecord(
+            path,
+            f"{env}: entropy per epoch per configuration",
+            caption,
+            THESIS_FIGURES.get((env, "curves_by_config"), ""),
+            env,
+        )
+    ]
 
 
 # ------------------------------------------------------------------------ final entropy bars
@@ -254,16 +303,20 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     winds = winds_of(groups)
     several = len(winds) > 1
     names = groups[0].config_names
-    configs: list[int | None] = [None] + list(range(len(names) if len(names) <= MAX_CONFIG_BARS else 1))
+    configs: list[int | None] = [None] + list(
+        range(len(names) if len(names) <= MAX_CONFIG_BARS else 1)
+    )
     cols = min(len(winds), 2)
     rows = math.ceil(len(winds) / cols)
-    fig = new_figure(max(4.5, 1.3 * len(configs) * len(styles) ** 0.5 + 2.5) * cols, 3.6 * rows + 0.7)
+    fig = new_figure(
+        max(6.0, 1.0 * len(configs) * len(styles) ** 0.5 + 1.5) * cols, 3.6 * rows + 0.7
+    )
     axes = fig.subplots(rows, cols, squeeze=False, sharey=True)
     width = 0.8 / len(styles)
     rng = np.random.default_rng(0)  # jitter of the seed dots only
     for i, wind in enumerate(winds):
         ax = axes[i // cols, i % cols]
-        members = [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
+        members = at_wind(groups, wind)
         for s, label in enumerate(styles):
             group = next((g for g in members if g.label == label), None)
             if group is None:
@@ -273,19 +326,42 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                 finals = np.array(list(group.finals(config).values()))
                 ci = mean_ci(finals)
                 pos = x - 0.4 + width * (s + 0.5)
-                ax.bar(pos, ci.mean, width * 0.9, color=style.colour, alpha=0.75,
-                       label=f"{label} (n={ci.n})" if x == 0 else None)
+                ax.bar(
+                    pos,
+                    ci.mean,
+                    width * 0.9,
+                    color=style.colour,
+                    alpha=0.75,
+                    hatch=style.hatch,
+                    edgecolor="white",
+                    label=f"{label} ({n_text(ci.n)})" if x == 0 else None,
+                )
                 if np.isfinite(ci.half_width):
                     ax.errorbar(pos, ci.mean, yerr=ci.half_width, color="black", capsize=4, lw=1.2)
                 jitter = rng.uniform(-0.2, 0.2, finals.size) * width
-                ax.scatter(pos + jitter, finals, s=8, color="black", alpha=0.6, zorder=4, lw=0,
-                           label="one seed" if (x == 0 and s == 0) else None)
+                ax.scatter(
+                    pos + jitter,
+                    finals,
+                    s=8,
+                    color="black",
+                    alpha=0.6,
+                    zorder=4,
+                    lw=0,
+                    label="one seed" if (x == 0 and s == 0) else None,
+                )
         run = members[0].first
         for x, config in enumerate(configs):
             bound = config_bound(run, config)
             if np.isfinite(bound):
-                ax.hlines(bound, x - 0.45, x + 0.45, color=BOUND_COLOUR, ls="--", lw=1.0,
-                          label="log(free area)" if x == 0 else None)
+                ax.hlines(
+                    bound,
+                    x - 0.45,
+                    x + 0.45,
+                    color=BOUND_COLOUR,
+                    ls="--",
+                    lw=1.0,
+                    label="log(free area)" if x == 0 else None,
+                )
         ticks = ["average"] + [f"config {c}\n{names[c]}" for c in configs[1:]]
         ax.set_xticks(range(len(configs)), ticks)
         ax.set_ylabel("final entropy (nats)")
@@ -294,7 +370,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     compared = " vs ".join(styles)
-    fig.suptitle(f"{env}: entropy at the end of training, {compared}")
+    fig.suptitle(f"{env}: entropy at the end of training (mean, 95% CI over seeds)")
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_final_entropy_bars.png")
     shown = "the average over configurations and " + (
@@ -306,8 +382,15 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
         "dots: individual seeds. Dashed: log(free area), the entropy of a uniform visitation "
         "(weighted by p_M for the average)."
     )
-    return [FigureRecord(path, f"{env}: final entropy per configuration", caption,
-                         THESIS_FIGURES.get((env, "bars"), ""), env)]
+    return [
+        FigureRecord(
+            path,
+            f"{env}: final entropy per configuration",
+            caption,
+            THESIS_FIGURES.get((env, "bars"), ""),
+            env,
+        )
+    ]
 
 
 def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
@@ -328,11 +411,20 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
         offset = (s - (len(styles) - 1) / 2) * 0.01 * span  # keep error bars apart
         order = np.argsort(xs)
         x = np.array(xs)[order] + offset
-        ax.errorbar(x, np.array(means)[order], yerr=np.nan_to_num(np.array(halves)[order]),
-                    color=style.colour, ls=style.linestyle, marker="o", capsize=4,
-                    label=f"{label} (n={min(ns)}–{max(ns)})" if min(ns) != max(ns) else f"{label} (n={ns[0]})")
+        ax.errorbar(
+            x,
+            np.array(means)[order],
+            yerr=np.nan_to_num(np.array(halves)[order]),
+            color=style.colour,
+            ls=style.linestyle,
+            marker="o",
+            capsize=4,
+            label=f"{label} (n={min(ns)}–{max(ns)})"
+            if min(ns) != max(ns)
+            else f"{label} (n={ns[0]})",
+        )
     draw_bound(ax, average_bound(groups[0].first))
-    ax.set_xticks(winds)
+    ax.set_xticks(winds, [format_wind(w) for w in winds])
     ax.set_xlabel("wind force")
     ax.set_ylabel("final average entropy (nats)")
     ax.grid(alpha=0.3)
@@ -345,8 +437,15 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
         f"against the wind force, {compared}. Markers: mean over seeds; error bars: Student-t 95% "
         f"CI ({seeds_text(groups)}). Dashed: log(free area) weighted by p_M."
     )
-    return [FigureRecord(path, f"{env}: entropy against wind force", caption,
-                         THESIS_FIGURES.get((env, "wind"), ""), env)]
+    return [
+        FigureRecord(
+            path,
+            f"{env}: entropy against wind force",
+            caption,
+            THESIS_FIGURES.get((env, "wind"), ""),
+            env,
+        )
+    ]
 
 
 # -------------------------------------------------------------------------- heatmaps and paths
@@ -356,22 +455,24 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
     winds = winds_of(groups)
     several = len(winds) > 1
     for wind in winds:
-        members = [g for g in groups if (g.wind == wind or (np.isnan(g.wind) and np.isnan(wind)))]
-        members = [g for g in members if g.representative().positions]
+        members = [g for g in at_wind(groups, wind) if g.representative().positions]
         if not members:
             continue
         world = load_world(env, wind)
         names = members[0].config_names
         chosen = [(g, g.representative()) for g in members]
-        rows = [(f"{g.label}\nseed {run.seed}", run.positions) for g, run in chosen]
+        rows = [
+            (f"{g.label}: seed {run.seed} ({_median_of(len(g.runs))})", run.positions)
+            for g, run in chosen
+        ]
         cols = min(len(names), 5)
         blocks = len(rows) * math.ceil(len(names) / cols)
-        fig = new_figure(2.5 * cols + 1.3, 2.5 * blocks + 0.7)
+        fig = new_figure(2.5 * cols + 1.2, 2.75 * blocks + 0.5)
         heatmap_grid(fig, world, rows, names)
         some = next(iter(chosen[0][1].positions.values()))
         fig.suptitle(
-            f"{env}{wind_title(wind, several)}: log probability of state visitation "
-            f"({some.shape[0]} trajectories, T={some.shape[1] - 1})"
+            f"{env}{wind_title(wind, several)}: log probability of state visitation\n"
+            f"{some.shape[0]} trajectories of T={some.shape[1] - 1} steps per configuration"
         )
         path = save(fig, out_dir / f"{env}{wind_tag(wind, several)}_heatmaps.png")
         who = "; ".join(f"{g.label}: seed {run.seed} of {len(g.runs)}" for g, run in chosen)
@@ -381,8 +482,15 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
             f"{some.shape[1] - 1} steps per configuration, collected with the final policy of one "
             f"representative seed per algorithm (the seed with the median final entropy): {who}."
         )
-        records.append(FigureRecord(path, f"{env}{wind_title(wind, several)}: visitation heatmaps",
-                                    caption, THESIS_FIGURES.get((env, "heatmaps"), ""), env))
+        records.append(
+            FigureRecord(
+                path,
+                f"{env}{wind_title(wind, several)}: visitation heatmaps",
+                caption,
+                THESIS_FIGURES.get((env, "heatmaps"), ""),
+                env,
+            )
+        )
     return records
 
 
@@ -400,22 +508,26 @@ def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRec
         names = group.config_names
         cols = min(len(names), 5)
         blocks = len(runs) * math.ceil(len(names) / cols)
-        fig = new_figure(2.5 * cols + 0.4, 2.5 * blocks + 0.6)
+        fig = new_figure(2.5 * cols + 0.2, 2.75 * blocks + 0.5)
         trajectory_grid(fig, world, [(f"seed {r.seed}", r.positions) for r in runs], names)
         fig.suptitle(
-            f"{env}{wind_title(group.wind, several)}: {group.label}, 10 trajectories per "
-            "configuration, a point every 10 steps (lighter = earlier)",
+            f"{env}{wind_title(group.wind, several)}: {group.label}\n10 trajectories per "
+            "configuration, a point every 10 steps, lighter = earlier",
             fontsize=10,
         )
         name = f"{env}{wind_tag(group.wind, several)}_trajectories_{slug(group.label)}.png"
         path = save(fig, out_dir / name)
         caption = (
             f"Ten trajectories of the final {group.label} policy in each configuration (columns) "
-            f"for {len(runs)} of its {len(group.runs)} seeds (rows), a point every 10 steps, one "
+            f"for seed{'s' if len(runs) > 1 else ''} {', '.join(str(r.seed) for r in runs)} "
+            f"(rows; {_seeds(len(group.runs))} in all; the first has "
+            "the median final entropy), a point every 10 steps, one "
             "colour per trajectory, lighter points earlier in the trajectory; grey: walls."
         )
         thesis = THESIS_FIGURES.get((env, "trajectories", group.algo), "")
-        records.append(FigureRecord(path, f"{env}: trajectories of {group.label}", caption, thesis, env))
+        records.append(
+            FigureRecord(path, f"{env}: trajectories of {group.label}", caption, thesis, env)
+        )
     return records
 
 
@@ -443,7 +555,9 @@ def finetune_curves(frame: pd.DataFrame) -> dict[tuple[str, int], tuple[np.ndarr
     return out
 
 
-def finetune_returns(env: str, frame: pd.DataFrame, names: list[str], out_dir: Path) -> list[FigureRecord]:
+def finetune_returns(
+    env: str, frame: pd.DataFrame, names: list[str], out_dir: Path
+) -> list[FigureRecord]:
     """Fine-tuning returns per epoch, per configuration, per initialisation (5.9)."""
     records = []
     winds = sorted(frame["wind"].unique())
@@ -453,11 +567,13 @@ def finetune_returns(env: str, frame: pd.DataFrame, names: list[str], out_dir: P
         part = frame[frame["wind"] == wind]
         curves = finetune_curves(part)
         configs = sorted({c for _, c in curves})
-        inits = sorted({i for i, _ in curves}, key=lambda i: (order.index(i) if i in order else 9, i))
+        inits = sorted(
+            {i for i, _ in curves}, key=lambda i: (order.index(i) if i in order else 9, i)
+        )
         fig = new_figure(4.6 * len(configs), 3.6)
         axes = fig.subplots(1, len(configs), squeeze=False, sharey=True)[0]
         counts = []
-        for ax, config in zip(axes, configs):
+        for ax, config in zip(axes, configs, strict=True):
             for init in inits:
                 if (init, config) not in curves:
                     continue
@@ -480,20 +596,30 @@ def finetune_returns(env: str, frame: pd.DataFrame, names: list[str], out_dir: P
         n_seeds = part.groupby("algo_init")["seed"].nunique().to_dict()
         n_targets = part.groupby("algo_init")["target"].nunique().to_dict()
         who = ", ".join(
-            f"{algo_label(i)}: {n_seeds.get(i, 0)} seeds x {n_targets.get(i, 0)} targets" for i in inits
+            f"{algo_label(i)}: {n_seeds.get(i, 0)} seeds x {n_targets.get(i, 0)} targets"
+            for i in inits
         )
         caption = (
             "Average return per epoch of TRPO on a sparse goal-reaching task, per configuration, "
             "started from a pre-trained policy or from scratch. Line: mean over every (seed, "
             f"target area) curve; band: Student-t 95% CI over those curves ({who})."
         )
-        records.append(FigureRecord(path, f"{env}: fine-tuning returns", caption,
-                                    THESIS_FIGURES.get((env, "finetune"), ""), env))
+        records.append(
+            FigureRecord(
+                path,
+                f"{env}: fine-tuning returns",
+                caption,
+                THESIS_FIGURES.get((env, "finetune"), ""),
+                env,
+            )
+        )
     return records
 
 
 # ------------------------------------------------------------------------------------ all
-def make_figures(groups: list[Group], finetune_runs: list[Run], out_dir: Path) -> list[FigureRecord]:
+def make_figures(
+    groups: list[Group], finetune_runs: list[Run], out_dir: Path
+) -> list[FigureRecord]:
     """Every figure the runs allow, in thesis order within each environment."""
     out_dir = Path(out_dir)
     records: list[FigureRecord] = []

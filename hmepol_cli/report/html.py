@@ -46,13 +46,14 @@ def _table(frame: pd.DataFrame, digits: int = 3) -> str:
         return html.escape(str(value))
 
     head = "".join(
-        f'<th class="{"" if c in numeric else "text"}">{html.escape(str(c))}</th>' for c in frame.columns
+        f'<th class="{"" if c in numeric else "text"}">{html.escape(str(c))}</th>'
+        for c in frame.columns
     )
     body = []
     for row in frame.itertuples(index=False):
         cells = "".join(
             f'<td class="{"" if c in numeric else "text"}">{cell(c, v)}</td>'
-            for c, v in zip(frame.columns, row)
+            for c, v in zip(frame.columns, row, strict=True)
         )
         body.append(f"<tr>{cells}</tr>")
     return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
@@ -85,7 +86,8 @@ def write_index(
         f"{sum(len(g.runs) for g in groups)} pre-training runs in {len(groups)} groups, "
         f"{len(finetune_runs)} fine-tuning runs, {len(skipped)} skipped.</p>",
         "<p>Entropies are kNN estimates in nats. Curves and bars show the mean over seeds with a "
-        "Student-t 95% confidence interval (none with a single seed). The final entropy of a run is "
+        "Student-t 95% confidence interval (none with a single seed). "
+        "The final entropy of a run is "
         "its mean over the last 10% of epochs. The dashed line log(free area) is the entropy of a "
         "uniform visitation of the free space, the highest any policy can reach.</p>",
         "<h2>Runs</h2>",
@@ -107,8 +109,10 @@ def write_index(
     parts.append("<h2>Skipped runs</h2>")
     if skipped:
         parts.append('<ul class="warn">')
-        parts += [f"<li><code>{e(_relative(s.path, runs_root) if s.path.is_relative_to(runs_root) else str(s.path))}</code>: "
-                  f"{e(s.reason)}</li>" for s in skipped]
+        parts += [
+            f"<li><code>{e(_relative(s.path, runs_root))}</code>: {e(s.reason)}</li>"
+            for s in skipped
+        ]
         parts.append("</ul>")
     else:
         parts.append("<p>None.</p>")
@@ -116,7 +120,9 @@ def write_index(
     for env in dict.fromkeys(f.env for f in figures):
         parts.append(f"<h2>Environment: {e(env)}</h2>")
         for record in (f for f in figures if f.env == env):
-            thesis = f' <span class="thesis">(thesis {e(record.thesis)})</span>' if record.thesis else ""
+            thesis = (
+                f' <span class="thesis">(thesis {e(record.thesis)})</span>' if record.thesis else ""
+            )
             parts.append(
                 f'<figure><img src="{e(_relative(record.path, out_dir))}" alt="{e(record.title)}">'
                 f"<figcaption><strong>{e(record.title)}</strong>{thesis}. {e(record.caption)}"
@@ -145,9 +151,14 @@ def write_index(
             "reaches the final mean return of the Mepol-initialised run.</p>"
         )
         parts.append(_table(finetune))
-    links = [n for n in ("summary.csv", "differences.csv", "finetune.csv", "summary.md")
-             if (out_dir / n).exists()]
-    parts.append("<p>Tables as files: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>")
+    links = [
+        n
+        for n in ("summary.csv", "differences.csv", "finetune.csv", "summary.md")
+        if (out_dir / n).exists()
+    ]
+    parts.append(
+        "<p>Tables as files: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>"
+    )
     parts.append("</body></html>")
     path = out_dir / "index.html"
     path.write_text("\n".join(parts), encoding="utf-8")

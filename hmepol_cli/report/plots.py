@@ -106,13 +106,26 @@ def visitation_log_prob(
     """
     xy = positions.reshape(-1, 2)
     xy = xy[np.isfinite(xy).all(axis=1)]
-    counts, _, _ = np.histogram2d(
-        xy[:, 0], xy[:, 1], bins=bins, range=[extent[:2], extent[2:]]
-    )
+    counts, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=[extent[:2], extent[2:]])
     total = counts.sum()
     with np.errstate(divide="ignore"):
         logp = np.log(counts / total) if total > 0 else np.full_like(counts, -np.inf)
     return np.ma.masked_invalid(logp.T)
+
+
+def _blocks(fig: Figure, n_blocks: int, rows_per_block: int, cols: int, labels: Sequence[str]):
+    """One subfigure per block (a run, a group), titled by its label; returns the axes grids.
+
+    Subfigures keep the block titles out of the panels' way (equal-aspect maps leave a row
+    label no reliable room).
+    """
+    subfigs = fig.subfigures(n_blocks, 1, squeeze=False)[:, 0]
+    grids = []
+    for subfig, label in zip(subfigs, labels, strict=True):
+        if label:
+            subfig.suptitle(label, fontsize=10, fontweight="bold")
+        grids.append(subfig.subplots(rows_per_block, cols, squeeze=False))
+    return grids
 
 
 def heatmap_grid(
@@ -124,7 +137,8 @@ def heatmap_grid(
 ) -> None:
     """Heatmaps of log visitation probability: one block of panels per row, one panel per config.
 
-    ``rows`` holds (label, {config: positions (n, T+1, 2)}). All panels share one colour scale.
+    ``rows`` holds (label, {config: positions (n, T+1, 2)}). All panels share one colour scale,
+    shown by one colour bar at the right.
     """
     n_configs = len(config_names)
     cols = min(n_configs, max_cols)
@@ -133,20 +147,22 @@ def heatmap_grid(
     extent = world_extent(world, some)
     bins = default_bins(extent)
     maps = [
-        {c: visitation_log_prob(p, extent, bins) for c, p in by_config.items()} for _, by_config in rows
+        {c: visitation_log_prob(p, extent, bins) for c, p in by_config.items()}
+        for _, by_config in rows
     ]
     values = [m.compressed() for block in maps for m in block.values() if m.count()]
     vmin = float(min(v.min() for v in values)) if values else -10.0
     vmax = float(max(v.max() for v in values)) if values else 0.0
-    axes = fig.subplots(len(rows) * rows_per_block, cols, squeeze=False)
+    panels, bar_fig = fig.subfigures(1, 2, width_ratios=[cols * 2.5, 1.2])
+    grids = _blocks(panels, len(rows), rows_per_block, cols, [label for label, _ in rows])
     image = None
-    for b, ((label, _), block) in enumerate(zip(rows, maps)):
+    for axes, block in zip(grids, maps, strict=True):
         for c in range(rows_per_block * cols):
-            ax = axes[b * rows_per_block + c // cols, c % cols]
+            ax = axes[c // cols, c % cols]
             if c >= n_configs:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"{config_names[c]}")
+            _map_axes(ax, extent, f"config {c}: {config_names[c]}")
             ax.set_facecolor("white")
             if c in block:
                 image = ax.imshow(
@@ -160,10 +176,9 @@ def heatmap_grid(
                     zorder=2,
                 )
             draw_walls(ax, world, c)
-            if c % cols == 0 and label:
-                ax.set_ylabel(label, fontsize=10)
     if image is not None:
-        bar = fig.colorbar(image, ax=axes, shrink=0.85, aspect=30)
+        cax = bar_fig.add_axes((0.15, 0.1, 0.18, 0.8))
+        bar = bar_fig.colorbar(image, cax=cax)
         bar.set_label("log probability of visitation (per bin)")
 
 
@@ -172,6 +187,8 @@ def draw_trajectories(
     ax, positions: np.ndarray, n_trajectories: int = 10, every: int = 10, markersize: float = 7
 ) -> None:
     """A point every ``every`` steps of the first trajectories, lighter early, darker late.
+
+    Points only: a line between points 10 steps apart would cut through walls.
 
     positions (n_traj, T+1, 2). One hue per trajectory; each point is the hue blended with white,
     from 80% white at the first step to the full hue at the last.
@@ -182,8 +199,10 @@ def draw_trajectories(
         base = np.array(to_rgb(palette[i % len(palette)]))
         strength = np.linspace(0.2, 1.0, len(points))[:, None]
         colours = 1.0 - strength * (1.0 - base)
-        ax.plot(points[:, 0], points[:, 1], color=base, alpha=0.25, lw=0.6, zorder=4)
-        ax.scatter(points[:, 0], points[:, 1], c=colours, s=markersize, lw=0, zorder=5)
+        # Not clipped: a point on the arena's edge is drawn whole.
+        ax.scatter(
+            points[:, 0], points[:, 1], c=colours, s=markersize, lw=0, zorder=5, clip_on=False
+        )
 
 
 def trajectory_grid(
@@ -201,19 +220,17 @@ def trajectory_grid(
     rows_per_block = math.ceil(n_configs / cols)
     some = next((p for _, by_c in rows for p in by_c.values()), None)
     extent = world_extent(world, some)
-    axes = fig.subplots(len(rows) * rows_per_block, cols, squeeze=False)
-    for b, (label, by_config) in enumerate(rows):
+    grids = _blocks(fig, len(rows), rows_per_block, cols, [label for label, _ in rows])
+    for axes, (_, by_config) in zip(grids, rows, strict=True):
         for c in range(rows_per_block * cols):
-            ax = axes[b * rows_per_block + c // cols, c % cols]
+            ax = axes[c // cols, c % cols]
             if c >= n_configs:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"{config_names[c]}")
+            _map_axes(ax, extent, f"config {c}: {config_names[c]}")
             draw_walls(ax, world, c)
             if c in by_config:
                 draw_trajectories(ax, by_config[c], n_trajectories, every)
-            if c % cols == 0 and label:
-                ax.set_ylabel(label, fontsize=10)
 
 
 # ----------------------------------------------------------------------------- one run (trainer)
@@ -229,7 +246,9 @@ def save_run_plots(
     positions_by_config: {config: (n_traj, T+1, 2)} rollouts of the policy in each configuration.
     """
     out_dir = Path(out_dir)
-    names = list(getattr(world, "config_names", None) or [f"config {c}" for c in sorted(positions_by_config)])
+    names = list(
+        getattr(world, "config_names", None) or [f"config {c}" for c in sorted(positions_by_config)]
+    )
     n_configs = len(names)
     cols = min(n_configs, 5)
     rows = math.ceil(n_configs / cols)
@@ -239,14 +258,17 @@ def save_run_plots(
 
     fig = new_figure(2.6 * cols + 1.2, 2.6 * rows + 0.6)
     heatmap_grid(fig, world, [("", positions_by_config)], names)
-    fig.suptitle(f"{world_name}: log probability of state visitation ({n_traj} trajectories, T={steps})")
+    fig.suptitle(
+        f"{world_name}: log probability of state visitation\n"
+        f"{n_traj} trajectories of T={steps} steps per configuration"
+    )
     heatmap = save(fig, out_dir / "heatmap.png")
 
     fig = new_figure(2.6 * cols, 2.6 * rows + 0.6)
     trajectory_grid(fig, world, [("", positions_by_config)], names, n_trajectories, every)
     fig.suptitle(
-        f"{world_name}: {min(n_trajectories, n_traj)} trajectories, a point every {every} steps "
-        "(lighter = earlier)",
+        f"{world_name}: {min(n_trajectories, n_traj)} trajectories per configuration\n"
+        f"a point every {every} steps, lighter = earlier",
         fontsize=10,
     )
     trajectories = save(fig, out_dir / "trajectories.png")

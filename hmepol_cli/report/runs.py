@@ -202,7 +202,9 @@ class Group:
         with_eval = [r for r in self.runs if r.positions]
         if not with_eval:
             return self.first
-        ordered = sorted(with_eval, key=lambda r: (np.nan_to_num(r.final_entropy(), nan=-1e9), r.seed))
+        ordered = sorted(
+            with_eval, key=lambda r: (np.nan_to_num(r.final_entropy(), nan=-1e9), r.seed)
+        )
         return ordered[(len(ordered) - 1) // 2]
 
 
@@ -241,7 +243,9 @@ def _read_csv(path: Path, required: tuple[str, ...]) -> pd.DataFrame:
     try:
         frame = pd.read_csv(path)
     except Exception as err:  # pandas raises several parser errors
-        raise RunError(f"{path.name} is corrupt ({type(err).__name__}: {err})".splitlines()[0]) from None
+        raise RunError(
+            f"{path.name} is corrupt ({type(err).__name__}: {err})".splitlines()[0]
+        ) from None
     missing = [c for c in required if c not in frame.columns]
     if missing:
         raise RunError(f"{path.name} is corrupt (missing columns: {', '.join(missing)})")
@@ -275,7 +279,9 @@ def _read_positions(path: Path, n_configs: int) -> dict[int, np.ndarray]:
         raise RunError("eval/final.npz holds no positions_c<c> arrays")
     for c, array in positions.items():
         if array.ndim != 3 or array.shape[-1] != 2:
-            raise RunError(f"eval/final.npz positions_c{c} has shape {array.shape}, not (n, T+1, 2)")
+            raise RunError(
+                f"eval/final.npz positions_c{c} has shape {array.shape}, not (n, T+1, 2)"
+            )
     if n_configs and sorted(positions) != list(range(n_configs)):
         raise RunError(
             f"eval/final.npz holds configurations {sorted(positions)}, expected 0..{n_configs - 1}"
@@ -294,7 +300,9 @@ def load_run(path: Path) -> Run:
         raise RunError("run.json is not a JSON object")
     status = meta.get("status")
     if status != "finished":
-        raise RunError(f"unfinished (status {status!r}, {meta.get('epochs_done', '?')} epochs done)")
+        raise RunError(
+            f"unfinished (status {status!r}, {meta.get('epochs_done', '?')} epochs done)"
+        )
     config_path = path / ".hydra" / "config.yaml"
     if config_path.is_file():
         try:
@@ -378,32 +386,33 @@ def group_runs(runs: list[Run]) -> list[Group]:
             group.runs.append(run)
     ordered = sorted(
         groups.values(),
-        key=lambda g: (g.env, np.nan_to_num(g.wind, nan=-1.0), _algo_rank(g.algo), repr(g.key)),
+        # Within an algorithm the group with most seeds (the main experiment) comes first.
+        key=lambda g: (
+            g.env,
+            np.nan_to_num(g.wind, nan=-1.0),
+            _algo_rank(g.algo),
+            -len(g.runs),
+            repr(g.key),
+        ),
     )
     label_groups(ordered)
     return ordered
 
 
 def label_groups(groups: list[Group]) -> None:
-    """Name each group inside its env: the algorithm, plus any key that still tells it apart.
-
-    Keys that vary within an env but are fixed by the algorithm (HMepol always with the recursive
-    policy, alpha-Mepol always with CVaR) are left out of the label.
+    """Name each group inside its env: the algorithm, plus the keys that tell apart groups of
+    the same algorithm ("HMepol (policy=gru)"). Keys fixed by the algorithm (HMepol always with
+    the recursive policy, alpha-Mepol always with CVaR) are left out of the label.
     """
     for env in {g.env for g in groups}:
         members = [g for g in groups if g.env == env]
-        runs = [g.first for g in members]
-        keys = [k for k in varying_keys(runs) if k not in ("env.name", "algo.name", "wind")]
-        extra = []
-        for key in keys:
-            by_algo: dict[str, set[str]] = {}
-            for run in runs:
-                by_algo.setdefault(run.algo, set()).add(repr(run.config.get(key)))
-            if any(len(v) > 1 for v in by_algo.values()):
-                extra.append(key)
-        for group in members:
-            parts = [f"{SHORT_NAMES.get(k, k)}={group.first.config.get(k)}" for k in extra]
-            group.label = algo_label(group.algo) + (f" ({', '.join(parts)})" if parts else "")
+        for algo in {g.algo for g in members}:
+            same = [g for g in members if g.algo == algo]
+            runs = [g.first for g in same]
+            keys = [k for k in varying_keys(runs) if k not in ("env.name", "algo.name", "wind")]
+            for group in same:
+                parts = [f"{SHORT_NAMES.get(k, k)}={group.first.config.get(k)}" for k in keys]
+                group.label = algo_label(algo) + (f" ({', '.join(parts)})" if parts else "")
 
 
 def algo_label(algo: str) -> str:

@@ -92,7 +92,9 @@ def finetune_table(runs: list[Run]) -> pd.DataFrame:
         for (init, config), (_, data) in curves.items():
             if init == "mepol":
                 mepol_final[config] = curve_ci(data)[0][-1]
-        for (init, config), (epochs, data) in sorted(curves.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        for (init, config), (epochs, data) in sorted(
+            curves.items(), key=lambda kv: (kv[0][1], kv[0][0])
+        ):
             ci = mean_ci([final_value(c) for c in data])
             mean = curve_ci(data)[0]
             target = mepol_final.get(config, math.nan)
@@ -107,7 +109,9 @@ def finetune_table(runs: list[Run]) -> pd.DataFrame:
                     "final_return": ci.mean,
                     "ci95_low": ci.low,
                     "ci95_high": ci.high,
-                    "first_epoch_reaching_mepol_final": epochs[reached[0]] if len(reached) else math.nan,
+                    "first_epoch_reaching_mepol_final": epochs[reached[0]]
+                    if len(reached)
+                    else math.nan,
                 }
             )
     return pd.DataFrame(rows)
@@ -130,7 +134,7 @@ def to_markdown(frame: pd.DataFrame, digits: int = 3) -> str:
     header = "| " + " | ".join(frame.columns) + " |"
     rule = "|" + "|".join("---" for _ in frame.columns) + "|"
     body = [
-        "| " + " | ".join(cell(c, v) for c, v in zip(frame.columns, row)) + " |"
+        "| " + " | ".join(cell(c, v) for c, v in zip(frame.columns, row, strict=True)) + " |"
         for row in frame.itertuples(index=False)
     ]
     return "\n".join([header, rule, *body]) + "\n"
