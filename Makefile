@@ -5,6 +5,7 @@ PYTHON ?= python3
 TORCH_VERSION ?= 2.13.0
 TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
+DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_fraction=0.25
 
 .PHONY: install demo test bench lint reproduce-quick reproduce clean
 
@@ -15,8 +16,9 @@ install:
 # Trains Mepol and HMepol on a small slope world, fine-tunes both on a goal, and writes the report.
 demo: install
 	hmepol sweep experiment=demo algo=mepol,hmepol hydra.sweep.dir=$(DEMO_DIR)/pretrain
-	hmepol finetune experiment=demo init=$(DEMO_DIR)/pretrain/algo=hmepol,experiment=demo hydra.run.dir=$(DEMO_DIR)/finetune/hmepol
-	hmepol finetune experiment=demo init=none hydra.run.dir=$(DEMO_DIR)/finetune/scratch
+	hmepol finetune init=$(DEMO_DIR)/pretrain/algo-hmepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/hmepol
+	hmepol finetune init=$(DEMO_DIR)/pretrain/algo-mepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/mepol
+	hmepol finetune init=none $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/scratch
 	hmepol report $(DEMO_DIR) --out $(DEMO_DIR)/report
 
 test:

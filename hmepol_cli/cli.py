@@ -6,7 +6,9 @@ runs, ``--cfg job``, ``-m`` and launchers all keep working (STYLE.md, Hydra fact
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import re
 import os
 import sys
 from pathlib import Path
@@ -43,7 +45,19 @@ def _run_dir_resolver(resume: str | None, default: str) -> str:
     return str(resume) if resume else default
 
 
+def _job_dir_resolver(override_dirname: str) -> str:
+    """A sweep job's folder: its overrides, readable, safe to pass back unquoted as an override
+    (``init=outputs/sweep/algo-hmepol_seed-0``), and short enough for any filesystem."""
+    name = override_dirname.replace("=", "-").replace(",", "_")
+    name = re.sub(r"[^A-Za-z0-9._+-]", "", name) or "default"
+    if len(name) <= 120:
+        return name
+    digest = hashlib.sha1(name.encode()).hexdigest()[:10]
+    return f"{name[:100]}-{digest}"
+
+
 OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
+OmegaConf.register_new_resolver("hmepol_job_dir", _job_dir_resolver, replace=True)
 register_configs()
 
 

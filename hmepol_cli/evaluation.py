@@ -16,6 +16,7 @@ import torch
 from hmepol_cli.checkpoint import atomic_write_bytes
 from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.policies.base import Policy
+from hmepol_cli.report.plots import save_run_plots
 from hmepol_cli.rollout import collect
 
 
@@ -61,9 +62,5 @@ def evaluate_and_save(
     positions = rollout_positions(world, policy, trajectories, horizon, generator)
     path = Path(out_dir) / f"{name}.npz"
     save_positions(path, positions)
-    try:
-        from hmepol_cli.report.plots import save_run_plots
-    except ImportError:  # the report package is optional for training
-        return path
     save_run_plots(world, positions, Path(out_dir) / name, plot_trajectories, plot_every)
     return path

@@ -12,6 +12,7 @@ from hmepol_cli.policies import make_policy
 # The tests use tiny tensors; extra threads only contend with the other processes on the box.
 torch.set_num_threads(1)
 
+
 def _tiny_policy(name: str, seed: int = 0, dtype: torch.dtype = torch.float64):
     """A policy of the given kind with 8-unit layers and a 6-dim history, in ``dtype``."""
     torch.manual_seed(seed)

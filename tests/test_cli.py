@@ -83,6 +83,8 @@ def test_thesis_presets_carry_table_values(hydra_compose):
     cfg = hydra_compose(config_name="config", overrides=["experiment=corridor_hmepol"])
     assert (cfg.env.name, cfg.algo.name, cfg.policy.name) == ("corridor", "hmepol", "recursive")
     assert (cfg.algo.trajectories, cfg.algo.batch_size, cfg.algo.kl_threshold, cfg.algo.lr) == (100, 1, 0.1, 4e-5)
+    demo = hydra_compose(config_name="config", overrides=["experiment=demo"])
+    assert demo.epochs == 15 and demo.algo.trajectories == 40  # presets win over top-level defaults
     cfg = hydra_compose(config_name="config", overrides=["experiment=multigrid_alphamepol"])
     assert (cfg.algo.objective, cfg.algo.alpha, cfg.env.name) == ("cvar", 0.1, "multigrid")
 
@@ -184,3 +186,35 @@ def test_killed_run_resumes_with_every_epoch_once_and_the_same_curves(tmp_path):
     cols = ["entropy", "objective", "entropy_iw", "kl", "off_iters"]
     pd.testing.assert_frame_equal(rows[cols], pd.read_csv(full / "epochs.csv")[cols])
     assert len(expected) == epochs
+
+
+def test_report_and_finetune_read_what_training_wrote(tmp_path):
+    for algo in ("mepol", "hmepol"):
+        for seed in (0, 1):
+            hmepol("train", *TINY, "epochs=2", f"algo={algo}", f"seed={seed}",
+                   f"hydra.run.dir={tmp_path}/runs/{algo}-{seed}", cwd=tmp_path)
+    hmepol("finetune", f"init={tmp_path}/runs/hmepol-0", "epochs=2", "episodes=4", "horizon=20",
+           "targets=1", "config=0", "progress=false", f"hydra.run.dir={tmp_path}/runs/ft", cwd=tmp_path)
+    assert len(pd.read_csv(tmp_path / "runs/ft/finetune.csv")) == 2
+    proc = hmepol("report", str(tmp_path / "runs"), "--out", str(tmp_path / "report"), cwd=tmp_path)
+    assert "report written to" in proc.stdout
+    index = (tmp_path / "report" / "index.html").read_text()
+    figures = sorted(p.name for p in (tmp_path / "report" / "figures").glob("*.png"))
+    for expected in ("slope_entropy_epochs.png", "slope_heatmaps.png", "slope_finetune_returns.png"):
+        assert expected in figures, figures
+    assert all(name in index for name in figures)
+    summary = pd.read_csv(tmp_path / "report" / "summary.csv")
+    assert set(summary.loc[summary.config == "average", "n_seeds"]) == {2}
+
+
+def test_show_draws_a_world(tmp_path):
+    proc = hmepol("show", "env=corridor", "wind=0.25", "--out", str(tmp_path / "c.png"), cwd=tmp_path)
+    assert (tmp_path / "c.png").stat().st_size > 10_000 and "drawn to" in proc.stdout
+    bad = hmepol("show", "env=corridor", "wind=abc", cwd=tmp_path, check=False)
+    assert bad.returncode != 0 and "wind='abc' is not a number" in bad.stderr
+
+
+def test_report_of_a_folder_without_runs_is_one_clear_line(tmp_path):
+    proc = hmepol("report", str(tmp_path / "nothing"), cwd=tmp_path, check=False)
+    assert proc.returncode != 0 and proc.stderr.startswith("hmepol: error:")
+    assert "Traceback" not in proc.stderr

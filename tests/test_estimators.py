@@ -49,7 +49,7 @@ def particle_sets(draw, max_p: int = 80, max_d: int = 4, max_k: int = 10):
 
 
 def brute_force(x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Others sorted by distance, from the full distance matrix: (P, k) indices, (P, k) distances."""
+    """Others by distance, from the full distance matrix: (P, k) indices, (P, k) distances."""
     dist = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=-1)
     np.fill_diagonal(dist, np.inf)
     order = np.argsort(dist, axis=1, kind="stable")[:, :k]
@@ -275,7 +275,8 @@ def test_coincident_particles_stay_finite(make, method, dtype):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_all_coincident_particles_hit_the_volume_floor(method):
-    # Every R_i = 0, so every V_i is floored at eps: eq. 2.6 = log(P / k) + log(eps) + log k - psi(k).
+    # Every R_i = 0, so every V_i is floored at eps:
+    # eq. 2.6 = log(P / k) + log(eps) + log k - psi(k).
     eps, k, p = 1e-10, 10, 100
     nb = nearest_neighbours(_all_equal(torch.float32), k, method)
     expected = math.log(p) + math.log(eps) - digamma(k)

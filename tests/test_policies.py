@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from scipy.stats import norm
 
 from hmepol_cli.config import PolicyConfig
+from hmepol_cli.envs.slope import SlopeWorld
 from hmepol_cli.policies import make_policy
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.rollout import Rollout, collect, draw_configs
@@ -94,8 +96,6 @@ def test_log_prob_under_sampling_parameters_is_the_recorded_one(name, bptt, worl
 @pytest.mark.parametrize("name", ALL)
 def test_log_prob_in_float32(name, bptt, tiny_policy):
     # The default dtype: the same identity to float32 rounding (measured <= 9.5e-7).
-    from hmepol_cli.envs.slope import SlopeWorld
-
     policy = jiggle(tiny_policy(name, dtype=torch.float32))
     r = roll(SlopeWorld(), policy)
     with torch.no_grad():
@@ -161,7 +161,10 @@ def test_one_step_parameter_gradient_comes_from_step_t_alone(name, world64, tiny
         fn().backward()
         # (the two-head policy's history head gets no gradient at all from one step)
         return torch.cat(
-            [(torch.zeros_like(p) if p.grad is None else p.grad).flatten() for p in policy.parameters()]
+            [
+                torch.zeros(p.numel(), dtype=F64) if p.grad is None else p.grad.flatten()
+                for p in policy.parameters()
+            ]
         )
 
     one_step = grads(lambda: policy.log_prob(r.inputs, r.actions, r.histories, 1)[:, t0].sum())
@@ -189,7 +192,7 @@ def test_history_blind_recursive_policy_is_markovian(world64, tiny_policy):
     markov = MarkovPolicy(state_dim=2, action_dim=2, hidden=[8, 6, 8], init_log_std=0.0).double()
     layers = [recursive.encoder[0], recursive.encoder[2], recursive.head[0], recursive.head[2]]
     with torch.no_grad():
-        for target, source in zip(markov.mean_net[::2], layers):
+        for target, source in zip(markov.mean_net[::2], layers, strict=True):
             target.weight.copy_(source.weight[:, : target.in_features])
             target.bias.copy_(source.bias)
         markov.log_std.copy_(recursive.log_std)
@@ -244,11 +247,10 @@ def test_log_prob_gradient_matches_finite_differences(name, bptt, world64, tiny_
 
 @pytest.mark.parametrize("name", ["markov", "gru"])
 def test_act_samples_the_gaussian_it_scores(name, tiny_policy):
-    # 20000 draws at one (state, history): sample mean within 4 standard errors of the network's
-    # mean (4 * 0.61 / sqrt(20000) = 0.017), sample std within 3% of exp(log_std) (its standard
-    # error is 0.5%); the recorded log-likelihood is scipy's independent Gaussian log-density.
-    from scipy.stats import norm
-
+    # 20000 draws at one (state, history). Sample mean within 4 standard errors of the
+    # network's mean (4 * 0.61 / sqrt(20000) = 0.017; measured 1.6), sample std within 2% of
+    # exp(log_std) (standard error 0.5%; measured 0.2%). The recorded log-likelihood is
+    # scipy's Gaussian log-density.
     policy = jiggle(tiny_policy(name))
     n = 20000
     states = torch.tensor([[-0.7, -0.8]], dtype=F64).expand(n, 2)
@@ -257,7 +259,7 @@ def test_act_samples_the_gaussian_it_scores(name, tiny_policy):
     mean, _ = policy.step(states[:1], history[:1])
     std = policy.log_std.exp().detach()
     assert ((actions.mean(0) - mean[0]).abs() < 4 * std / n**0.5).all()
-    torch.testing.assert_close(actions.std(0), std, rtol=0.03, atol=0)
+    torch.testing.assert_close(actions.std(0), std, rtol=0.02, atol=0)
     expected = norm.logpdf(actions.numpy(), mean.detach().numpy(), std.numpy()).sum(-1)
     torch.testing.assert_close(log_p, torch.from_numpy(expected), rtol=1e-12, atol=1e-12)
     deterministic, _, _ = policy.act(states[:1], history[:1], deterministic=True)

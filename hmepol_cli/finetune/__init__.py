@@ -23,7 +23,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from hmepol_cli.checkpoint import atomic_write_text, load_trained_policy, write_json
+from hmepol_cli.checkpoint import RUN_INFO, atomic_write_text, load_trained_policy, write_json
 from hmepol_cli.config import ConfigError
 from hmepol_cli.envs import ENVIRONMENTS, NavigationWorld, make_world
 from hmepol_cli.finetune.task import GoalTask, TargetError, make_tasks
@@ -229,6 +229,19 @@ def finetune(cfg: DictConfig) -> Path:
     out_dir = _output_dir(cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / TARGETS_JSON, _targets_info(world, tasks, env_cfg, init_label, algo_init))
+    info = {
+        "kind": "finetune",
+        "status": "running",
+        "env": env_cfg.name,
+        "wind": float(env_cfg.get("wind") or 0.0),
+        "algo": algo_init,
+        "init": init_label,
+        "seed": int(cfg.seed),
+        "epochs": int(cfg.epochs),
+        "config_names": list(world.config_names),
+        "config_probs": list(world.config_probs),
+    }
+    write_json(out_dir / RUN_INFO, info)
     csv_path = out_dir / FINETUNE_CSV
     rows: list[dict] = []
     total = sum(len(t) for t in tasks.values()) * int(cfg.epochs)
@@ -260,6 +273,7 @@ def finetune(cfg: DictConfig) -> Path:
                 bar.update(1)
                 bar.set_postfix(config=c, target=k, R=f"{row['return']:.2f}", KL=f"{stats.kl:.3g}")
     bar.close()
+    write_json(out_dir / RUN_INFO, {**info, "status": "finished"})
     print(f"hmepol: fine-tuning returns written to {csv_path}")
     return out_dir
 

@@ -88,11 +88,12 @@ class Run:
 
     @property
     def env(self) -> str:
-        return str(self.config.get("env.name", self.meta.get("env", "?")))
+        # run.json names the world actually used (a fine-tuning config may leave it to its init).
+        return str(self.meta.get("env") or self.config.get("env.name") or "?")
 
     @property
     def algo(self) -> str:
-        return str(self.config.get("algo.name", self.meta.get("algo", "?")))
+        return str(self.meta.get("algo") or self.config.get("algo.name") or "?")
 
     @property
     def wind(self) -> float:
@@ -303,14 +304,17 @@ def load_run(path: Path) -> Run:
         raise RunError(
             f"unfinished (status {status!r}, {meta.get('epochs_done', '?')} epochs done)"
         )
-    config_path = path / ".hydra" / "config.yaml"
+    # The run's own resolved copy first: Hydra rewrites .hydra/ when a run is resumed.
+    config_path = path / "config.yaml"
+    if not config_path.is_file():
+        config_path = path / ".hydra" / "config.yaml"
     if config_path.is_file():
         try:
             config = load_config(config_path)
         except RunError:
             raise
         except Exception as err:
-            raise RunError(f".hydra/config.yaml is unreadable ({type(err).__name__})") from None
+            raise RunError(f"{config_path.name} is unreadable ({type(err).__name__})") from None
     else:  # fall back on what run.json says
         config = {
             "env.name": meta.get("env"),

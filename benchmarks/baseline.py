@@ -1,0 +1,175 @@
+"""The straightforward implementation the batched code is measured against.
+
+One environment at a time, one step at a time, in a plain Python loop: NumPy float64 arrays,
+the policy's forward pass on a single state per step. It simulates the same worlds as
+``hmepol_cli.envs`` (same walls, slope and wind; :func:`check_same_physics` verifies the wall
+physics against the batched world) with the same policy weights, so the two do the same work.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from hmepol_cli.envs.base import WALL_GAP, NavigationWorld
+from hmepol_cli.envs.corridor import CorridorWorld
+from hmepol_cli.envs.grid import SLOPE_RANGE, SLOPE_STD, GridWorld
+from hmepol_cli.policies.base import Policy
+from hmepol_cli.policies.markov import MarkovPolicy
+from hmepol_cli.policies.recursive import RecursivePolicy
+
+
+class PlainWorld:
+    """A single agent in one configuration of a world, stepped with NumPy scalars and arrays."""
+
+    def __init__(self, world: NavigationWorld, config: int, rng: np.random.Generator) -> None:
+        self.world, self.config, self.rng = world, config, rng
+        self.walls = np.array([(b.x0, b.y0, b.x1, b.y1) for b in world.walls[config]]).reshape(-1, 4)
+        a = world.arena
+        self.arena = (a.x0, a.y0, a.x1, a.y1)
+        if isinstance(world, CorridorWorld):
+            field = world.wind_field[config]
+            self.wind_boxes = np.array([(b.x0, b.y0, b.x1, b.y1) for b, _ in field])
+            self.wind_dirs = np.array([d for _, d in field])
+        if isinstance(world, GridWorld):
+            slope = world.slopes[config]
+            self.slope = slope
+            big = 1e9
+            r = slope.region
+            self.slope_region = (r.x0, r.y0, r.x1, r.y1) if r else (-big, -big, big, big)
+
+    def reset(self) -> np.ndarray:
+        s = self.world.start
+        return np.array([s.x0, s.y0]) + self.rng.random(2) * np.array([s.x1 - s.x0, s.y1 - s.y0])
+
+    def force(self, position: np.ndarray) -> np.ndarray:
+        x, y = position
+        if isinstance(self.world, CorridorWorld):
+            r = self.world.room
+            if r.x0 <= x <= r.x1 and r.y0 <= y <= r.y1:
+                return np.zeros(2)
+            b = self.wind_boxes
+            holds = (x >= b[:, 0]) & (x <= b[:, 2]) & (y >= b[:, 1]) & (y <= b[:, 3])
+            if not holds.any():
+                return np.zeros(2)
+            return self.world.wind * self.wind_dirs[np.argmax(holds)]
+        slope = self.slope
+        x0, y0, x1, y1 = self.slope_region
+        if slope.mean <= 0 or not (x0 <= x <= x1 and y0 <= y <= y1):
+            return np.zeros(2)
+        lo, hi = (SLOPE_RANGE[0] - slope.mean) / SLOPE_STD, (SLOPE_RANGE[1] - slope.mean) / SLOPE_STD
+        magnitude = slope.mean + SLOPE_STD * np.clip(self.rng.standard_normal(), lo, hi)
+        return magnitude * np.asarray(slope.direction)
+
+    def step(self, position: np.ndarray, action: np.ndarray) -> np.ndarray:
+        bound = self.world.max_action
+        return self.move(position, np.clip(action, -bound, bound) + self.force(position))
+
+    def move(self, position: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+        x, y = position
+        w = self.walls
+        x = min(max(_slide(x, y, displacement[0], w[:, 0], w[:, 2], w[:, 1], w[:, 3]), self.arena[0]), self.arena[2])
+        y = min(max(_slide(y, x, displacement[1], w[:, 1], w[:, 3], w[:, 0], w[:, 2]), self.arena[1]), self.arena[3])
+        return np.array([x, y])
+
+
+def _slide(along, across, delta, lo, hi, band_lo, band_hi) -> float:
+    target = along + delta
+    in_band = (across >= band_lo) & (across <= band_hi)
+    if delta > 0:
+        hit = in_band & (lo >= along) & (lo < target)
+        return min(target, (lo[hit] - WALL_GAP).min()) if hit.any() else target
+    if delta < 0:
+        hit = in_band & (hi <= along) & (hi > target)
+        return max(target, (hi[hit] + WALL_GAP).max()) if hit.any() else target
+    return target
+
+
+class PlainPolicy:
+    """The same Gaussian policy as a list of float64 NumPy layers, one state at a time."""
+
+    def __init__(self, policy: Policy, rng: np.random.Generator) -> None:
+        def layers(net: torch.nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+            modules = list(net)
+            out = []
+            for i, m in enumerate(modules):
+                if isinstance(m, torch.nn.Linear):
+                    relu = i + 1 < len(modules) and isinstance(modules[i + 1], torch.nn.ReLU)
+                    out.append((m.weight.detach().double().numpy().T.copy(), m.bias.detach().double().numpy(), relu))
+            return out
+
+        self.rng = rng
+        self.std = np.exp(policy.log_std.detach().double().numpy())
+        self.history_size = policy.history_size
+        if isinstance(policy, MarkovPolicy):
+            self.encoder, self.head = None, layers(policy.mean_net)
+        elif isinstance(policy, RecursivePolicy):
+            self.encoder, self.head = layers(policy.encoder), layers(policy.head)
+        else:
+            raise ValueError(f"no plain baseline for {type(policy).__name__}")
+
+    @staticmethod
+    def _forward(layers, x: np.ndarray) -> np.ndarray:
+        for weight, bias, relu in layers:
+            x = x @ weight + bias
+            if relu:
+                x = np.maximum(x, 0.0)
+        return x
+
+    def act(self, state: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        if self.encoder is not None:
+            history = self._forward(self.encoder, np.concatenate((state, history)))
+            mean = self._forward(self.head, history)
+        else:
+            mean = self._forward(self.head, state)
+        action = mean + self.std * self.rng.standard_normal(mean.shape)
+        z = (action - mean) / self.std
+        log_prob = float(np.sum(-0.5 * z * z - np.log(self.std) - 0.5 * np.log(2 * np.pi)))
+        return action, log_prob, history
+
+
+def steps_per_second(
+    world: NavigationWorld, policy: Policy, horizon: int, trajectories: int, seed: int = 0
+) -> tuple[float, int]:
+    """Run ``trajectories`` single-environment episodes of ``horizon`` steps in a plain loop,
+    storing states, actions and log-likelihoods as the batched collection does.
+
+    -> (environment steps per second, steps timed).
+    """
+    rng = np.random.default_rng(seed)
+    plain_policy = PlainPolicy(policy, rng)
+    probs = np.asarray(world.config_probs)
+    start = time.perf_counter()
+    for _ in range(trajectories):
+        env = PlainWorld(world, int(rng.choice(len(probs), p=probs)), rng)
+        states = np.empty((horizon + 1, 2))
+        actions = np.empty((horizon, 2))
+        log_probs = np.empty(horizon)
+        states[0] = position = env.reset()
+        history = np.zeros(plain_policy.history_size)
+        for t in range(horizon):
+            actions[t], log_probs[t], history = plain_policy.act(position, history)
+            states[t + 1] = position = env.step(position, actions[t])
+    seconds = time.perf_counter() - start
+    return trajectories * horizon / seconds, trajectories * horizon
+
+
+def check_same_physics(world: NavigationWorld, samples: int = 2000, seed: int = 0) -> float:
+    """Largest difference between the plain and the batched wall physics on random moves."""
+    rng = np.random.default_rng(seed)
+    a = world.arena
+    positions = rng.uniform((a.x0, a.y0), (a.x1, a.y1), size=(samples, 2))
+    displacement = rng.uniform(-0.6, 0.6, size=(samples, 2))
+    configs = rng.integers(0, world.n_configs, samples)
+    batched_world = type(world).__new__(type(world))
+    batched_world.__dict__.update(world.__dict__)
+    batched_world.to("cpu", torch.float64)
+    batched = batched_world.move(
+        torch.from_numpy(positions), torch.from_numpy(displacement), torch.from_numpy(configs)
+    ).numpy()
+    plain = np.stack(
+        [PlainWorld(world, int(c), rng).move(p, d) for p, d, c in zip(positions, displacement, configs)]
+    )
+    return float(np.abs(plain - batched).max())
