@@ -32,3 +32,27 @@ lint:
 
 clean:
 	rm -rf outputs/demo .pytest_cache .hypothesis
+
+QUICK_DIR ?= outputs/quick
+FULL_DIR ?= outputs/full
+QUICK_CORRIDOR = $(QUICK_DIR)/corridor/algo-$(1)_experiment-quick_corridor_seed-0_wind-0.4
+QUICK_FINETUNE ?= epochs=15 episodes=10 horizon=400 targets=2 config=1 fisher_fraction=0.25
+
+# About an hour on a 2-core CPU: every experiment of thesis ch. 5 at a reduced scale, then the report.
+reproduce-quick:
+	hmepol sweep experiment=quick_slope algo=mepol,alphamepol,hmepol seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/slope
+	hmepol sweep experiment=quick_corridor algo=mepol,hmepol wind=0.05,0.4 seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/corridor
+	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/multigrid
+	hmepol finetune init=$(call QUICK_CORRIDOR,hmepol) $(QUICK_FINETUNE) progress=false hydra.run.dir=$(QUICK_DIR)/finetune/hmepol
+	hmepol finetune init=$(call QUICK_CORRIDOR,mepol) $(QUICK_FINETUNE) progress=false hydra.run.dir=$(QUICK_DIR)/finetune/mepol
+	hmepol report $(QUICK_DIR) --out $(QUICK_DIR)/report
+
+# The thesis' full settings (tables A.1-A.3; 8 seeds, 4 for multigrid), meant for a cluster or a GPU:
+#   make reproduce LAUNCHER=slurm
+LAUNCHER ?= local
+SEEDS8 = seed=0,1,2,3,4,5,6,7
+reproduce:
+	hmepol sweep hydra/launcher=$(LAUNCHER) experiment=slope_mepol,slope_alphamepol,slope_hmepol $(SEEDS8) progress=false hydra.sweep.dir=$(FULL_DIR)/slope
+	hmepol sweep hydra/launcher=$(LAUNCHER) experiment=corridor_mepol,corridor_hmepol,corridor_alphamepol wind=0.05,0.15,0.25,0.4 $(SEEDS8) progress=false hydra.sweep.dir=$(FULL_DIR)/corridor
+	hmepol sweep hydra/launcher=$(LAUNCHER) experiment=multigrid_alphamepol,multigrid_hmepol seed=0,1,2,3 progress=false hydra.sweep.dir=$(FULL_DIR)/multigrid
+	hmepol report $(FULL_DIR) --out $(FULL_DIR)/report

@@ -62,9 +62,13 @@ class CueCorridorWorld(NavigationWorld):
     config_probs = (0.5, 0.5)
     walls = (WALLS, WALLS)
 
-    def reset(self, configs: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    def reset(
+        self, configs: torch.Tensor, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """Uniform in the pad of each configuration. configs (N,) -> (N, 2)."""
-        u = torch.rand(configs.shape[0], 2, device=self.device, dtype=self.dtype, generator=generator)
+        u = torch.rand(
+            configs.shape[0], 2, device=self.device, dtype=self.dtype, generator=generator
+        )
         pads = torch.tensor(
             [[p.x0, p.y0, p.x1, p.y1] for p in PADS], device=self.device, dtype=self.dtype
         )[configs]  # (N, 4)
