@@ -46,6 +46,7 @@ class PolicyConfig:
     hidden: list[int] = field(default_factory=lambda: [300, 300])  # Gaussian head MLP
     encoder_hidden: list[int] = field(default_factory=lambda: [300, 300])  # history encoder g
     history_size: int = 100  # length of h'_t
+    encoder_activation: str = "relu"  # output of g: relu (thesis) | tanh (bounded history)
     bptt: str = "1"  # 1 (thesis) | n (truncated) | full (exact likelihoods)
     init_log_std: float = -0.5
 
@@ -153,5 +154,6 @@ def validate(cfg: DictConfig) -> None:
     if cfg.epochs < 0:
         raise ConfigError(f"epochs={cfg.epochs!r} must be >= 0")
     parse_bptt(cfg.policy.bptt)
+    _one_of("policy.encoder_activation", cfg.policy.encoder_activation, ("relu", "tanh"))
     if cfg.policy.history_size <= 0:
         raise ConfigError(f"policy.history_size={cfg.policy.history_size!r} must be > 0")

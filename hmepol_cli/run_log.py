@@ -77,6 +77,7 @@ class RunLog:
             off_iters=u.off_iters,
             backtracks=u.backtracks,
             lr=u.lr,
+            history_max=stats.history_max,
             seconds=stats.seconds["epoch"],
             collect_seconds=stats.seconds["collect"],
             neighbours_seconds=stats.seconds["neighbours"],

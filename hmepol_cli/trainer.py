@@ -49,6 +49,7 @@ class EpochStats:
     batch_configs: np.ndarray  # (M,) configuration of each mini-batch
     objective: float
     update: UpdateResult
+    history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
     seconds: dict[str, float] = field(default_factory=dict)
 
 
@@ -139,6 +140,7 @@ class Trainer:
             batch_configs=configs[:: a.batch_size].cpu().numpy(),
             objective=float(objective(entropies, a.objective, a.alpha)),
             update=update,
+            history_max=float(rollout.histories.abs().max()) if rollout.histories.numel() else 0.0,
             seconds={"collect": t1 - t0, "neighbours": t2 - t1, "update": t3 - t2, "epoch": t3 - t0},
         )
 

@@ -264,3 +264,26 @@ def test_act_samples_the_gaussian_it_scores(name, tiny_policy):
     torch.testing.assert_close(log_p, torch.from_numpy(expected), rtol=1e-12, atol=1e-12)
     deterministic, _, _ = policy.act(states[:1], history[:1], deterministic=True)
     torch.testing.assert_close(deterministic, mean.detach())
+
+
+def test_tanh_encoder_keeps_the_history_bounded_where_relu_can_grow_without_bound():
+    """h'_t = g(s_t, h'_{t-1}): with an expansive last layer a ReLU output grows geometrically."""
+    from hmepol_cli.policies.recursive import RecursivePolicy
+
+    torch.manual_seed(0)
+    states = torch.rand(8, 2) * 2 - 1
+    sizes = dict(state_dim=2, action_dim=2, hidden=[16], encoder_hidden=[], history_size=6, init_log_std=-0.5)
+    for activation in ("relu", "tanh"):
+        policy = RecursivePolicy(encoder_activation=activation, **sizes)
+        with torch.no_grad():  # an expansive recursion: identity x 2 on the history inputs
+            layer = policy.encoder[0]
+            layer.weight.zero_()
+            layer.weight[:, 2:] = 2 * torch.eye(6)
+            layer.bias.fill_(0.1)
+        history = policy.initial_history(8)
+        for _ in range(60):
+            _, history = policy.step(states, history)
+        if activation == "relu":
+            assert history.max() > 1e15
+        else:
+            assert history.abs().max() <= 1.0

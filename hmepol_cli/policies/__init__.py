@@ -18,10 +18,16 @@ def make_policy(cfg, state_dim: int, action_dim: int) -> Policy:
             hidden=hidden,
             encoder_hidden=list(cfg.encoder_hidden),
             history_size=cfg.history_size,
+            encoder_activation=cfg.encoder_activation,
             **common,
         )
     if cfg.name == "twohead":
-        return TwoHeadPolicy(hidden=hidden, history_size=cfg.history_size, **common)
+        return TwoHeadPolicy(
+            hidden=hidden,
+            history_size=cfg.history_size,
+            encoder_activation=cfg.encoder_activation,
+            **common,
+        )
     if cfg.name == "gru":
         return GRUPolicy(hidden=hidden, history_size=cfg.history_size, **common)
     if cfg.name == "lstm":

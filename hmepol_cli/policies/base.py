@@ -13,13 +13,18 @@ import torch
 from torch import nn
 
 
-def mlp(sizes: list[int], out_activation: bool = False) -> nn.Sequential:
-    """Linear layers with ReLU between them (and after the last when ``out_activation``)."""
+ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
+
+
+def mlp(sizes: list[int], out_activation: str | None = None) -> nn.Sequential:
+    """Linear layers with ReLU between them, and ``out_activation`` (relu, tanh) after the last."""
     layers: list[nn.Module] = []
     for i in range(len(sizes) - 1):
         layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-        if i < len(sizes) - 2 or out_activation:
+        if i < len(sizes) - 2:
             layers.append(nn.ReLU())
+    if out_activation is not None:
+        layers.append(ACTIVATIONS[out_activation]())
     return nn.Sequential(*layers)
 
 

@@ -1,7 +1,9 @@
 """Non-Markovian policies built on a recursive history encoder (thesis chapter 4, and ch. 6).
 
 - ``RecursivePolicy``: the thesis architecture. Encoder g: MLP on [s_t, h'_{t-1}] with ReLU
-  output, giving h'_t; Gaussian head: MLP on h'_t (Fig. 4.4).
+  output, giving h'_t; Gaussian head: MLP on h'_t (Fig. 4.4). A ReLU output is unbounded, and
+  trained with bptt=1 the recursion can become expansive (h'_t growing geometrically over the
+  400 steps); ``encoder_activation="tanh"`` bounds it.
 - ``TwoHeadPolicy``: one network with two outputs, the action mean and the next history.
 - ``GRUPolicy`` / ``LSTMPolicy``: gated recurrent encoders; the LSTM's history tensor holds
   [h, c] side by side, so every policy carries one (N, H) tensor.
@@ -24,10 +26,13 @@ class RecursivePolicy(Policy):
         encoder_hidden: list[int],
         history_size: int,
         init_log_std: float,
+        encoder_activation: str = "relu",
     ):
         super().__init__(state_dim, action_dim, init_log_std)
         self.history_size = history_size
-        self.encoder = mlp([state_dim + history_size, *encoder_hidden, history_size], out_activation=True)
+        self.encoder = mlp(
+            [state_dim + history_size, *encoder_hidden, history_size], out_activation=encoder_activation
+        )
         self.head = mlp([history_size, *hidden, action_dim])
         shrink_last_layer(self.head)
 
@@ -44,12 +49,13 @@ class TwoHeadPolicy(Policy):
         hidden: list[int],
         history_size: int,
         init_log_std: float,
+        encoder_activation: str = "relu",
     ):
         super().__init__(state_dim, action_dim, init_log_std)
         self.history_size = history_size
-        self.trunk = mlp([state_dim + history_size, *hidden], out_activation=True)
+        self.trunk = mlp([state_dim + history_size, *hidden], out_activation="relu")
         self.mean_head = nn.Sequential(nn.Linear(hidden[-1], action_dim))
-        self.history_head = nn.Sequential(nn.Linear(hidden[-1], history_size), nn.ReLU())
+        self.history_head = mlp([hidden[-1], history_size], out_activation=encoder_activation)
         shrink_last_layer(self.mean_head)
 
     def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
