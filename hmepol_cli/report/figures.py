@@ -186,6 +186,18 @@ def draw_curve(ax, group: Group, style: Style, config: int | None) -> None:
         ax.fill_between(epochs, mean - half, mean + half, color=style.colour, alpha=0.2, lw=0)
 
 
+def fit_to_lines(ax) -> None:
+    """Y-limits from the mean lines and the bound, not the bands: with two seeds a Student-t band
+    is 12.7 standard errors wide and would flatten every curve (the band is clipped, not hidden)."""
+    values = [np.asarray(line.get_ydata(), dtype=float) for line in ax.get_lines()]
+    values = np.concatenate([v[np.isfinite(v)] for v in values]) if values else np.array([])
+    if values.size == 0:
+        return
+    lo, hi = float(values.min()), float(values.max())
+    pad = max(0.15 * (hi - lo), 0.25)
+    ax.set_ylim(lo - pad, hi + pad)
+
+
 def _legend(fig, axes) -> None:
     """One legend for the figure, below the panels, from the union of the panels' handles."""
     seen: dict[str, object] = {}
@@ -221,6 +233,7 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
         for group in members:
             draw_curve(ax, group, styles[group.label], None)
         draw_bound(ax, average_bound(members[0].first))
+        fit_to_lines(ax)
         ax.set_title(f"wind {format_wind(wind)}" if several else "average over configurations")
         ax.set_xlabel("epoch")
         ax.set_ylabel("entropy (nats)")
@@ -270,6 +283,7 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
             for group in members:
                 draw_curve(ax, group, styles[group.label], c)
             draw_bound(ax, config_bound(members[0].first, c))
+            fit_to_lines(ax)
             ax.set_title(f"config {c}: {names[c]}{wind_title(wind, several)}", fontsize=10)
             ax.set_xlabel("epoch")
             if c % cols == 0:
@@ -362,6 +376,14 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                     lw=1.0,
                     label="log(free area)" if x == 0 else None,
                 )
+        # Limits from the bars, the seed dots and the bounds: a two-seed t-interval is clipped.
+        shown_values = [p.get_height() for p in ax.patches] + [
+            float(v) for c in ax.collections for v in np.asarray(c.get_offsets())[:, 1]
+        ] + [config_bound(run, c) for c in configs]
+        shown_values = np.array([v for v in shown_values if np.isfinite(v)] + [0.0])
+        lo, hi = shown_values.min(), shown_values.max()
+        pad = max(0.15 * (hi - lo), 0.25)
+        ax.set_ylim(lo - pad, hi + pad)
         ticks = ["average"] + [f"config {c}\n{names[c]}" for c in configs[1:]]
         ax.set_xticks(range(len(configs)), ticks)
         ax.set_ylabel("final entropy (nats)")
