@@ -43,6 +43,7 @@ reproduce-quick:
 	hmepol sweep experiment=quick_slope algo=mepol,alphamepol,hmepol seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/slope
 	hmepol sweep experiment=quick_corridor algo=mepol,hmepol wind=0.05,0.4 seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/corridor
 	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/multigrid
+	hmepol sweep experiment=quick_slope algo=hmepol policy.encoder_activation=tanh seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/slope
 	hmepol finetune init=$(call QUICK_CORRIDOR,hmepol) $(QUICK_FINETUNE) progress=false hydra.run.dir=$(QUICK_DIR)/finetune/hmepol
 	hmepol finetune init=$(call QUICK_CORRIDOR,mepol) $(QUICK_FINETUNE) progress=false hydra.run.dir=$(QUICK_DIR)/finetune/mepol
 	hmepol report $(QUICK_DIR) --out $(QUICK_DIR)/report

@@ -109,6 +109,8 @@ def test_slurm_launcher_config_composes(hydra_compose):
         (["wind=abc"], "abc"),
         (["resume=/nonexistent/run"], "/nonexistent/run"),
         (["device=tpu"], "device='tpu'"),
+        (["algo.lrr=1"], "lrr"),
+        (["epochs=many"], "many"),
     ],
 )
 def test_bad_input_gets_a_clear_message_not_a_traceback(tmp_path, args, expected):
