@@ -38,12 +38,15 @@ FULL_DIR ?= outputs/full
 QUICK_CORRIDOR = $(QUICK_DIR)/corridor/algo-$(1)_experiment-quick_corridor_seed-0_wind-0.4
 QUICK_FINETUNE ?= epochs=15 episodes=10 horizon=400 targets=2 config=1 fisher_fraction=0.25
 
-# About an hour on a 2-core CPU: every experiment of thesis ch. 5 at a reduced scale, then the report.
+# About an hour on a 2-core CPU: every experiment of thesis ch. 5 at a reduced scale (plus HMepol
+# with a tanh-bounded history encoder), then the report.
 reproduce-quick:
 	hmepol sweep experiment=quick_slope algo=mepol,alphamepol,hmepol seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/slope
 	hmepol sweep experiment=quick_corridor algo=mepol,hmepol wind=0.05,0.4 seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/corridor
 	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/multigrid
 	hmepol sweep experiment=quick_slope algo=hmepol policy.encoder_activation=tanh seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/slope
+	hmepol sweep experiment=quick_corridor algo=hmepol policy.encoder_activation=tanh wind=0.05,0.4 seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/corridor
+	hmepol sweep experiment=quick_multigrid algo=hmepol policy.encoder_activation=tanh seed=0,1 progress=false hydra.sweep.dir=$(QUICK_DIR)/multigrid
 	hmepol finetune init=$(call QUICK_CORRIDOR,hmepol) $(QUICK_FINETUNE) progress=false hydra.run.dir=$(QUICK_DIR)/finetune/hmepol
 	hmepol finetune init=$(call QUICK_CORRIDOR,mepol) $(QUICK_FINETUNE) progress=false hydra.run.dir=$(QUICK_DIR)/finetune/mepol
 	hmepol report $(QUICK_DIR) --out $(QUICK_DIR)/report
