@@ -40,7 +40,7 @@ class RunLog:
             algo=cfg.algo.name,
             policy=cfg.policy.name,
             seed=int(cfg.seed),
-            wind=float(cfg.env.wind),
+            wind=getattr(world, "wind", None),  # only worlds with a wind (corridor) have one
             epochs=int(cfg.epochs),
             config_names=list(world.config_names),
             config_probs=list(world.config_probs),

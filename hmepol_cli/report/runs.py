@@ -97,6 +97,8 @@ class Run:
 
     @property
     def wind(self) -> float:
+        if "wind" in self.meta and self.meta["wind"] is None:
+            return math.nan  # a world without wind
         for value in (self.meta.get("wind"), self.config.get("env.wind"), self.config.get("wind")):
             try:
                 return float(value)
@@ -223,6 +225,14 @@ def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _schema_defaults() -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    from hmepol_cli.config import Config
+
+    return flatten(OmegaConf.to_container(OmegaConf.structured(Config)))
+
+
 def load_config(path: Path) -> dict[str, Any]:
     """Flattened ``.hydra/config.yaml``; interpolations are resolved where they can be."""
     from omegaconf import OmegaConf
@@ -322,6 +332,10 @@ def load_run(path: Path) -> Run:
             "policy.name": meta.get("policy"),
             "seed": meta.get("seed"),
         }
+    if not (path / "finetune.csv").exists():
+        # Keys added to the schema after a run was made take their defaults, so old and new runs
+        # of the same settings group together.
+        config = {**_schema_defaults(), **config}
     run = Run(path=path, config=config, meta=meta)
     if (path / "finetune.csv").exists():
         # A fine-tuning run is reported only through its returns.
