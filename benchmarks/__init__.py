@@ -1,0 +1,1 @@
+"""`make bench`: thesis-scale speed measurements (``python -m benchmarks.run``)."""

@@ -8,6 +8,7 @@ physics against the batched world) with the same policy weights, so the two do t
 
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -26,7 +27,8 @@ class PlainWorld:
 
     def __init__(self, world: NavigationWorld, config: int, rng: np.random.Generator) -> None:
         self.world, self.config, self.rng = world, config, rng
-        self.walls = np.array([(b.x0, b.y0, b.x1, b.y1) for b in world.walls[config]]).reshape(-1, 4)
+        walls = [(b.x0, b.y0, b.x1, b.y1) for b in world.walls[config]]
+        self.walls = np.array(walls, dtype=np.float64).reshape(-1, 4)
         a = world.arena
         self.arena = (a.x0, a.y0, a.x1, a.y1)
         if isinstance(world, CorridorWorld):
@@ -59,7 +61,10 @@ class PlainWorld:
         x0, y0, x1, y1 = self.slope_region
         if slope.mean <= 0 or not (x0 <= x <= x1 and y0 <= y <= y1):
             return np.zeros(2)
-        lo, hi = (SLOPE_RANGE[0] - slope.mean) / SLOPE_STD, (SLOPE_RANGE[1] - slope.mean) / SLOPE_STD
+        lo, hi = (
+            (SLOPE_RANGE[0] - slope.mean) / SLOPE_STD,
+            (SLOPE_RANGE[1] - slope.mean) / SLOPE_STD,
+        )
         magnitude = slope.mean + SLOPE_STD * np.clip(self.rng.standard_normal(), lo, hi)
         return magnitude * np.asarray(slope.direction)
 
@@ -70,8 +75,14 @@ class PlainWorld:
     def move(self, position: np.ndarray, displacement: np.ndarray) -> np.ndarray:
         x, y = position
         w = self.walls
-        x = min(max(_slide(x, y, displacement[0], w[:, 0], w[:, 2], w[:, 1], w[:, 3]), self.arena[0]), self.arena[2])
-        y = min(max(_slide(y, x, displacement[1], w[:, 1], w[:, 3], w[:, 0], w[:, 2]), self.arena[1]), self.arena[3])
+        x = min(
+            max(_slide(x, y, displacement[0], w[:, 0], w[:, 2], w[:, 1], w[:, 3]), self.arena[0]),
+            self.arena[2],
+        )
+        y = min(
+            max(_slide(y, x, displacement[1], w[:, 1], w[:, 3], w[:, 0], w[:, 2]), self.arena[1]),
+            self.arena[3],
+        )
         return np.array([x, y])
 
 
@@ -87,17 +98,21 @@ def _slide(along, across, delta, lo, hi, band_lo, band_hi) -> float:
     return target
 
 
+ACTIVATIONS = {torch.nn.ReLU: lambda x: np.maximum(x, 0.0), torch.nn.Tanh: np.tanh}
+
+
 class PlainPolicy:
     """The same Gaussian policy as a list of float64 NumPy layers, one state at a time."""
 
     def __init__(self, policy: Policy, rng: np.random.Generator) -> None:
-        def layers(net: torch.nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, bool]]:
-            modules = list(net)
-            out = []
+        def layers(net: torch.nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, object]]:
+            """(weight (in, out), bias, activation or None) per Linear layer."""
+            modules, out = list(net), []
             for i, m in enumerate(modules):
                 if isinstance(m, torch.nn.Linear):
-                    relu = i + 1 < len(modules) and isinstance(modules[i + 1], torch.nn.ReLU)
-                    out.append((m.weight.detach().double().numpy().T.copy(), m.bias.detach().double().numpy(), relu))
+                    after = type(modules[i + 1]) if i + 1 < len(modules) else None
+                    weight = m.weight.detach().double().numpy().T.copy()
+                    out.append((weight, m.bias.detach().double().numpy(), ACTIVATIONS.get(after)))
             return out
 
         self.rng = rng
@@ -112,10 +127,10 @@ class PlainPolicy:
 
     @staticmethod
     def _forward(layers, x: np.ndarray) -> np.ndarray:
-        for weight, bias, relu in layers:
+        for weight, bias, activation in layers:
             x = x @ weight + bias
-            if relu:
-                x = np.maximum(x, 0.0)
+            if activation is not None:
+                x = activation(x)
         return x
 
     def act(self, state: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -163,13 +178,14 @@ def check_same_physics(world: NavigationWorld, samples: int = 2000, seed: int = 
     positions = rng.uniform((a.x0, a.y0), (a.x1, a.y1), size=(samples, 2))
     displacement = rng.uniform(-0.6, 0.6, size=(samples, 2))
     configs = rng.integers(0, world.n_configs, samples)
-    batched_world = type(world).__new__(type(world))
-    batched_world.__dict__.update(world.__dict__)
-    batched_world.to("cpu", torch.float64)
+    batched_world = copy.copy(world).to("cpu", torch.float64)  # the caller's world stays as it is
     batched = batched_world.move(
         torch.from_numpy(positions), torch.from_numpy(displacement), torch.from_numpy(configs)
     ).numpy()
     plain = np.stack(
-        [PlainWorld(world, int(c), rng).move(p, d) for p, d, c in zip(positions, displacement, configs)]
+        [
+            PlainWorld(world, int(c), rng).move(p, d)
+            for p, d, c in zip(positions, displacement, configs, strict=True)
+        ]
     )
     return float(np.abs(plain - batched).max())

@@ -13,6 +13,10 @@ import os
 import sys
 from pathlib import Path
 
+# OpenMP threads that spin while waiting slow torch down many-fold on a shared or oversubscribed
+# machine (a sweep, a laptop); a user who wants spinning sets the variable themselves.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig

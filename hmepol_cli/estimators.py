@@ -12,6 +12,7 @@ weights w = 1/P, W_i = k/P and eq. 2.7 reduces exactly to eq. 2.6.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,8 +38,9 @@ class Neighbours:
 def nearest_neighbours(particles: torch.Tensor, k: int, method: str = "auto") -> Neighbours:
     """Search the k nearest other particles of every particle, within its own mini-batch.
 
-    particles (M, P, d). ``method``: "kdtree" (scipy's cKDTree, all cores), "torch" (pairwise
-    distances, chunked; the fast path on a GPU) or "auto" (torch on cuda, kdtree otherwise).
+    particles (M, P, d). ``method``: "kdtree" (scipy's cKDTree, one mini-batch per thread),
+    "torch" (pairwise distances, chunked; the fast path on a GPU) or "auto" (torch on cuda,
+    kdtree otherwise).
     """
     m, p, d = particles.shape
     if not 0 < k < p:
@@ -58,8 +60,15 @@ def _kdtree_search(particles: torch.Tensor, k: int) -> tuple[torch.Tensor, torch
     points = particles.detach().to("cpu", torch.float64).numpy()
     idx = np.empty(points.shape[:2] + (k + 1,), dtype=np.int64)
     dist = np.empty(points.shape[:2] + (k + 1,), dtype=np.float64)
-    for j, batch in enumerate(points):
-        dist[j], idx[j] = cKDTree(batch).query(batch, k=k + 1, workers=-1)
+
+    def search(j: int) -> None:
+        dist[j], idx[j] = cKDTree(points[j]).query(points[j], k=k + 1)
+
+    # One mini-batch per thread (the query releases the GIL): with small mini-batches this beats
+    # cKDTree's own workers, which start their threads anew for every query. As many threads as
+    # torch uses, so that a sweep's one-thread jobs stay on one core each.
+    with ThreadPoolExecutor(torch.get_num_threads()) as pool:
+        list(pool.map(search, range(points.shape[0])))
     device = particles.device
     return torch.from_numpy(idx).to(device), torch.from_numpy(dist).to(device, particles.dtype)
 
@@ -91,13 +100,13 @@ def _split_self(idx: torch.Tensor, dist: torch.Tensor, k: int, dim: int) -> Neig
     m, p, _ = idx.shape
     own = torch.arange(p, device=idx.device).view(1, p, 1)
     is_self = idx == own
-    drop = is_self.clone()
-    drop[..., -1] |= ~is_self.any(dim=-1)
-    keep = ~drop
-    others = idx[keep].view(m, p, k)
-    others_dist = dist[keep].view(m, p, k)
+    # Column to drop: i itself, or the last one where i is missing (a search lists i at most once).
+    drop = torch.where(is_self.any(dim=-1), is_self.to(torch.uint8).argmax(dim=-1), k)
+    columns = torch.arange(k, device=idx.device)
+    keep = columns + (columns >= drop[..., None])  # (M, P, k): the other columns, in order
+    others = idx.gather(-1, keep)
     indices = torch.cat((own.expand(m, p, 1), others[..., : k - 1]), dim=-1)
-    return Neighbours(indices=indices, radius=others_dist[..., k - 1], dim=dim)
+    return Neighbours(indices=indices, radius=dist.gather(-1, keep[..., k - 1 :])[..., 0], dim=dim)
 
 
 def log_ball_volume(radius: torch.Tensor, dim: int, eps: float = 1e-10) -> torch.Tensor:

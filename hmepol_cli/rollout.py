@@ -43,7 +43,6 @@ def draw_configs(
     return per_batch.repeat_interleave(batch_size)
 
 
-@torch.no_grad()
 def collect(
     world: NavigationWorld,
     policy: Policy,
@@ -54,16 +53,18 @@ def collect(
 ) -> Rollout:
     """Run one trajectory per entry of ``configs`` for ``horizon`` steps."""
     n, device, dtype = configs.shape[0], world.device, world.dtype
+    # Storage is made outside inference mode: the off-policy loop differentiates through it.
     states = torch.empty(n, horizon + 1, world.state_dim, device=device, dtype=dtype)
     actions = torch.empty(n, horizon, world.action_dim, device=device, dtype=dtype)
     histories = torch.empty(n, horizon, policy.history_size, device=device, dtype=dtype)
     log_probs = torch.empty(n, horizon, device=device, dtype=dtype)
-    position = world.reset(configs, generator)
-    history = policy.initial_history(n, device, dtype)
-    states[:, 0] = position
-    for t in range(horizon):
-        histories[:, t] = history
-        action, log_prob, history = policy.act(position, history, generator, deterministic)
-        position = world.step(position, action, configs, generator)
-        actions[:, t], log_probs[:, t], states[:, t + 1] = action, log_prob, position
+    with torch.inference_mode():  # no autograd bookkeeping on the ~100 small ops of each step
+        position = world.reset(configs, generator)
+        history = policy.initial_history(n, device, dtype)
+        states[:, 0] = position
+        for t in range(horizon):
+            histories[:, t] = history
+            action, log_prob, history = policy.act(position, history, generator, deterministic)
+            position = world.step(position, action, configs, generator)
+            actions[:, t], log_probs[:, t], states[:, t + 1] = action, log_prob, position
     return Rollout(states, actions, histories, log_probs, configs)

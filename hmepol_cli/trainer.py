@@ -159,7 +159,7 @@ class Trainer:
         lr = a.lr
         _set_lr(optimizer, lr)
         accepted = _snapshot(policy, optimizer)
-        # The sampling policy's own likelihoods (same bptt mode) are the behaviour: ratio 1 at start.
+        # The sampling policy's likelihoods (same bptt mode) are the behaviour: ratio 1 at start.
         entropies, kl, value, behaviour = evaluate()
         result = UpdateResult(entropies.detach(), 0.0, 0, 0, lr)
         while result.off_iters < a.max_off_iters:
@@ -167,12 +167,14 @@ class Trainer:
             (-value).backward()
             optimizer.step()
             entropies, kl, value, _ = evaluate(behaviour)
-            inside = (kl <= a.kl_threshold) & torch.isfinite(value)
+            in_region = (kl <= a.kl_threshold) & torch.isfinite(value)
             # One host sync per iteration: on a GPU the loop waits for the device only here.
-            inside, kl_value = torch.stack((inside.to(kl.dtype), kl.detach())).tolist()
-            if inside:
+            step_kept, kl_value = torch.stack((in_region.to(kl.dtype), kl.detach())).tolist()
+            if step_kept:
                 accepted = _snapshot(policy, optimizer)
-                result = UpdateResult(entropies.detach(), kl_value, result.off_iters + 1, result.backtracks, lr)
+                result = UpdateResult(
+                    entropies.detach(), kl_value, result.off_iters + 1, result.backtracks, lr
+                )
                 continue
             _load_snapshot(policy, optimizer, accepted)
             if result.off_iters > 0 or result.backtracks >= a.backtrack_tries:
@@ -227,9 +229,9 @@ def keep_freed_memory() -> None:
 
     An off-policy iteration allocates and frees activations of ~100 MB (80,000 particles x 300
     units). By default glibc serves blocks that large with mmap and unmaps them when freed, so
-    every iteration pays the page faults of fresh memory again: measured with ``make bench``, an
-    iteration takes ~1.8x as long. Raising the mmap and trim thresholds keeps those pages in the
-    heap. Process-wide, idempotent, and a no-op where the C library has no ``mallopt``.
+    every iteration pays the page faults of fresh memory again: an iteration then takes ~1.1-1.5x
+    as long (README, Speed). Raising the mmap and trim thresholds keeps those pages in the heap.
+    Process-wide, idempotent, and a no-op where the C library has no ``mallopt``.
     """
     try:
         mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt

@@ -80,6 +80,8 @@ class NavigationWorld:
             for i, b in enumerate(boxes):
                 table[c, i] = (b.x0, b.y0, b.x1, b.y1)
         self._walls = torch.tensor(table, device=self.device, dtype=self.dtype)  # (C, W, 4)
+        # Configurations that share their walls (slope, corridor) need no per-agent gather.
+        self._shared_walls = self._walls[:1] if len(set(self.walls)) == 1 else None  # (1, W, 4)
         self._probs = torch.tensor(self.config_probs, device=self.device, dtype=torch.float64)
 
     # ------------------------------------------------------------------ dynamics
@@ -120,7 +122,10 @@ class NavigationWorld:
     def move(
         self, positions: torch.Tensor, displacement: torch.Tensor, configs: torch.Tensor
     ) -> torch.Tensor:
-        walls = self._walls[configs]  # (N, W, 4)
+        if self._shared_walls is None:
+            walls = self._walls.index_select(0, configs)  # (N, W, 4)
+        else:
+            walls = self._shared_walls  # (1, W, 4)
         x, y = positions[:, 0], positions[:, 1]
         x = _slide(x, y, displacement[:, 0], walls[..., 0], walls[..., 2], walls[..., 1], walls[..., 3])
         x = x.clamp(self.arena.x0, self.arena.x1)
@@ -176,8 +181,8 @@ def _slide(
 ) -> torch.Tensor:
     """Move ``along`` one axis by ``delta``, stopping short of the first wall face crossed.
 
-    along, across, delta (N,); lo, hi, band_lo, band_hi (N, W): each wall spans [lo, hi] on the
-    moving axis and (band_lo, band_hi) on the other one.
+    along, across, delta (N,); lo, hi, band_lo, band_hi (N, W) or (1, W): each wall spans [lo, hi]
+    on the moving axis and (band_lo, band_hi) on the other one.
     """
     target = (along + delta)[:, None]
     start = along[:, None]

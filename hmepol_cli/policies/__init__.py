@@ -10,6 +10,8 @@ from hmepol_cli.policies.recursive import GRUPolicy, LSTMPolicy, RecursivePolicy
 def make_policy(cfg, state_dim: int, action_dim: int) -> Policy:
     """Build the policy named by ``cfg.name`` (a PolicyConfig or DictConfig)."""
     hidden = list(cfg.hidden)
+    # Runs saved before the option existed used the thesis' ReLU encoder output.
+    encoder_activation = getattr(cfg, "encoder_activation", "relu")
     common = dict(state_dim=state_dim, action_dim=action_dim, init_log_std=cfg.init_log_std)
     if cfg.name == "markov":
         return MarkovPolicy(hidden=hidden, **common)
@@ -18,14 +20,14 @@ def make_policy(cfg, state_dim: int, action_dim: int) -> Policy:
             hidden=hidden,
             encoder_hidden=list(cfg.encoder_hidden),
             history_size=cfg.history_size,
-            encoder_activation=cfg.encoder_activation,
+            encoder_activation=encoder_activation,
             **common,
         )
     if cfg.name == "twohead":
         return TwoHeadPolicy(
             hidden=hidden,
             history_size=cfg.history_size,
-            encoder_activation=cfg.encoder_activation,
+            encoder_activation=encoder_activation,
             **common,
         )
     if cfg.name == "gru":

@@ -1,0 +1,93 @@
+"""Timers, the machine's matrix-multiply throughput, policy FLOPs and the neighbour baseline."""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def best_time(fn: Callable[[], object], repeats: int) -> float:
+    """Fastest of ``repeats`` calls, in seconds: the least disturbed by other processes."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def _fastest(fn: Callable[[], object], min_seconds: float) -> float:
+    """Fastest call of ``fn`` after a warm-up, repeating for at least ``min_seconds``."""
+    fn()
+    best, spent = float("inf"), 0.0
+    while spent < min_seconds:
+        start = time.perf_counter()
+        fn()
+        seconds = time.perf_counter() - start
+        best, spent = min(best, seconds), spent + seconds
+    return best
+
+
+def matmul_flops(size: int = 2048, min_seconds: float = 0.5) -> float:
+    """float32 FLOP/s of torch.matmul on two (size, size) matrices, at torch's thread count."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    return 2 * size**3 / _fastest(lambda: torch.matmul(a, b), min_seconds)
+
+
+def layer_matmul_flops(rows: int, width: int = 300, min_seconds: float = 0.5) -> float:
+    """float32 FLOP/s of the three matmuls of a hidden (width x width) Linear layer over ``rows``
+    particles, the shapes an off-policy iteration multiplies: forward x W^T, backward g W and
+    g^T x."""
+    x, g, w = torch.randn(rows, width), torch.randn(rows, width), torch.randn(width, width)
+
+    def layer() -> None:
+        torch.matmul(x, w.T)
+        torch.matmul(g, w)
+        torch.matmul(g.T, x)
+
+    return 3 * 2 * rows * width * width / _fastest(layer, min_seconds)
+
+
+def forward_flops(policy: torch.nn.Module) -> int:
+    """FLOPs of one forward pass for one sample: 2 * in * out per Linear layer."""
+    return sum(
+        2 * layer.in_features * layer.out_features
+        for layer in policy.modules()
+        if isinstance(layer, torch.nn.Linear)
+    )
+
+
+def brute_force_neighbours(batch: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The straightforward search: all pairwise distances of a mini-batch (P, d), then the k + 1
+    smallest of each row, sorted. -> (distances (P, k + 1), indices (P, k + 1))."""
+    distances = np.sqrt(((batch[:, None, :] - batch[None, :, :]) ** 2).sum(axis=-1))
+    idx = np.argpartition(distances, k, axis=1)[:, : k + 1]
+    near = np.take_along_axis(distances, idx, axis=1)
+    order = np.argsort(near, axis=1, kind="stable")
+    return np.take_along_axis(near, order, axis=1), np.take_along_axis(idx, order, axis=1)
+
+
+def brute_force_seconds(particles: torch.Tensor, k: int, batches: int) -> tuple[float, int]:
+    """Seconds the brute-force search takes for all mini-batches of ``particles`` (M, P, d),
+    float64, one thread, timed on the first ``batches`` and extrapolated. -> (seconds, timed)."""
+    points = particles.detach().to("cpu", torch.float64).numpy()
+    timed = min(batches, points.shape[0])
+    start = time.perf_counter()
+    for batch in points[:timed]:
+        brute_force_neighbours(batch, k)
+    return (time.perf_counter() - start) * points.shape[0] / timed, timed
+
+
+def cpu_name() -> str:
+    """The processor's model name (Linux), else what the platform module knows."""
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()

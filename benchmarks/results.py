@@ -1,0 +1,259 @@
+"""What one benchmark run measured, the ratios derived from it, and its Markdown report."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+OFF_ITERS = 30  # off-policy iterations of a measured epoch (the thesis' max_off_iters)
+# What issue 7 asks of this machine.
+TARGETS = {
+    "collection_ratio": 50.0,  # steps/s against the plain per-step loop, at least
+    "neighbour_seconds": 0.5,  # kdtree search per epoch, at most
+    "matmul_fraction": 0.5,  # of measured matmul throughput in an off-policy iteration, at least
+    "hmepol_corridor_epoch_seconds": 40.0,  # at most
+}
+ALGO_NAMES = {"mepol": "Mepol", "hmepol": "HMepol"}
+
+
+@dataclass
+class Row:
+    """One setting (world x algorithm) at thesis scale."""
+
+    env: str
+    algo: str
+    particles: int  # N x T
+    forward_flops: int  # of the policy, per particle
+    plain_steps_per_s: float = 0.0  # the plain per-step loop
+    plain_steps_timed: int = 0
+    steps_per_s: float = 0.0  # batched collection
+    kdtree_s: float = 0.0
+    torch_s: float = 0.0
+    brute_force_s: float = 0.0
+    brute_force_batches_timed: int = 0
+    collect_s: float = 0.0  # of the whole epoch
+    neighbours_s: float = 0.0
+    update_s: float = 0.0
+    epoch_s: float = 0.0
+    off_iters: int = 0
+    # Matmul throughput measured just before and just after the epoch (the faster of the two):
+    layer_matmul_flops: float = 0.0  # at the hidden layer's shapes over all particles
+    square_matmul_flops: float = 0.0  # 2048 x 2048 by 2048 x 2048
+
+    @property
+    def label(self) -> str:
+        return f"{self.env} {ALGO_NAMES[self.algo]}"
+
+    @property
+    def collection_ratio(self) -> float:
+        return self.steps_per_s / self.plain_steps_per_s
+
+    @property
+    def iteration_s(self) -> float:
+        return self.update_s / max(self.off_iters, 1)
+
+    @property
+    def iteration_flops(self) -> float:
+        """Forward + backward of the policy over all particles, counted as 3 x forward."""
+        return 3.0 * self.forward_flops * self.particles
+
+    @property
+    def iteration_flops_per_s(self) -> float:
+        return self.iteration_flops / self.iteration_s
+
+    @property
+    def matmul_fraction(self) -> float:
+        """Of the matmul throughput at the policy's own layer shapes (the target's reference)."""
+        return self.iteration_flops_per_s / self.layer_matmul_flops
+
+    @property
+    def square_fraction(self) -> float:
+        return self.iteration_flops_per_s / self.square_matmul_flops
+
+    @property
+    def plain_epoch_s(self) -> float:
+        """The same epoch with the plain loop's collection and the brute-force search."""
+        return self.particles / self.plain_steps_per_s + self.brute_force_s + self.update_s
+
+    def derived(self) -> dict[str, float]:
+        names = (
+            "collection_ratio",
+            "iteration_s",
+            "iteration_flops",
+            "matmul_fraction",
+            "square_fraction",
+            "plain_epoch_s",
+        )
+        return {name: getattr(self, name) for name in names}
+
+
+def targets(rows: list[Row]) -> list[tuple[str, str, bool]]:
+    """(target, measured, met) for each target the rows cover."""
+    t, out = TARGETS, []
+    if rows:
+        lowest = min(r.collection_ratio for r in rows)
+        out.append(
+            (
+                f"collection >= {t['collection_ratio']:.0f}x the plain loop",
+                f"{lowest:.1f}x (lowest)",
+                lowest >= t["collection_ratio"],
+            )
+        )
+        highest = max(r.kdtree_s for r in rows)
+        out.append(
+            (
+                f"neighbour search < {t['neighbour_seconds']} s per epoch",
+                f"{highest:.3f} s (highest)",
+                highest < t["neighbour_seconds"],
+            )
+        )
+        lowest = min(r.matmul_fraction for r in rows)
+        out.append(
+            (
+                f"off-policy iteration >= {t['matmul_fraction']:.0%} of matmul throughput",
+                f"{lowest:.0%} (lowest)",
+                lowest >= t["matmul_fraction"],
+            )
+        )
+    for r in rows:
+        if (r.env, r.algo) == ("corridor", "hmepol"):
+            limit = t["hmepol_corridor_epoch_seconds"]
+            out.append(
+                (f"HMepol corridor epoch < {limit:.0f} s", f"{r.epoch_s:.1f} s", r.epoch_s < limit)
+            )
+    return out
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    return "\n".join([*lines, *("| " + " | ".join(r) + " |" for r in rows)])
+
+
+def markdown(rows: list[Row], check: dict, meta: dict) -> str:
+    """The report: one table per measurement, then the dtype check and the targets."""
+    first = rows[0]
+    collection = _table(
+        ["setting", "steps/s", "plain loop steps/s", "ratio"],
+        [
+            [
+                r.label,
+                f"{r.steps_per_s:,.0f}",
+                f"{r.plain_steps_per_s:,.0f}",
+                f"{r.collection_ratio:.1f}x",
+            ]
+            for r in rows
+        ],
+    )
+    neighbours = _table(
+        ["setting", "kdtree s", "torch s", "brute force s", "brute force / kdtree"],
+        [
+            [
+                r.label,
+                f"{r.kdtree_s:.3f}",
+                f"{r.torch_s:.3f}",
+                f"{r.brute_force_s:.2f}",
+                f"{r.brute_force_s / r.kdtree_s:.0f}x",
+            ]
+            for r in rows
+        ],
+    )
+    iteration = _table(
+        [
+            "setting",
+            "s / iteration",
+            "GFLOP / iteration",
+            "GFLOP/s",
+            "layer matmul GFLOP/s",
+            "fraction",
+            "2048² matmul GFLOP/s",
+            "fraction",
+        ],
+        [
+            [
+                r.label,
+                f"{r.iteration_s:.3f}",
+                f"{r.iteration_flops / 1e9:.1f}",
+                f"{r.iteration_flops_per_s / 1e9:.1f}",
+                f"{r.layer_matmul_flops / 1e9:.1f}",
+                f"{r.matmul_fraction:.0%}",
+                f"{r.square_matmul_flops / 1e9:.1f}",
+                f"{r.square_fraction:.0%}",
+            ]
+            for r in rows
+        ],
+    )
+    epoch = _table(
+        [
+            "setting",
+            "collect s",
+            "neighbours s",
+            f"{first.off_iters} iterations s",
+            "epoch s",
+            "plain epoch s",
+            "ratio",
+        ],
+        [
+            [
+                r.label,
+                f"{r.collect_s:.2f}",
+                f"{r.neighbours_s:.2f}",
+                f"{r.update_s:.1f}",
+                f"{r.epoch_s:.1f}",
+                f"{r.plain_epoch_s:.1f}",
+                f"{r.plain_epoch_s / r.epoch_s:.2f}x",
+            ]
+            for r in rows
+        ],
+    )
+    goals = _table(
+        ["target", "measured", "met"],
+        [[t, m, "yes" if ok else "no"] for t, m, ok in meta["targets"]],
+    )
+    return f"""\
+Machine: {meta["machine"]}; torch {meta["torch"]}, {meta["threads"]} threads, \
+OMP_WAIT_POLICY={meta["omp_wait_policy"]}, float32. Load average (1, 5, 15 min) \
+{meta["load_before"]} at the start, {meta["load_after"]} at the end; {meta["seconds"]:.0f} s in all.
+
+**Collection** (N x T steps, policy included) against a plain per-step Python loop over single \
+environments (NumPy float64, one policy forward per environment per step; \
+{first.plain_steps_timed} steps timed, extrapolated). The two take turns, the faster of \
+{meta["repeats"]} turns each; kNN searches too keep the fastest of {meta["repeats"]}:
+
+{collection}
+
+**Neighbour search per epoch** (every mini-batch, k = 30) against a brute-force search (all \
+pairwise distances of a mini-batch, NumPy float64, one thread; {first.brute_force_batches_timed} \
+mini-batches timed, extrapolated):
+
+{neighbours}
+
+**Off-policy iteration** (forward + backward of the IW objective, KL, Adam step, trust-region \
+bookkeeping; the mean over the {first.off_iters} iterations of the epoch below) against float32 \
+torch.matmul measured just before and after that epoch: at the shapes of a hidden 300 x 300 \
+layer over all particles (forward x W^T, backward g W and g^T x: the representative size) and at \
+2048². FLOPs counted analytically: 2 x in x out per Linear per particle forward, x3 for \
+forward + backward:
+
+{iteration}
+
+**Whole epoch** (collection + neighbours + {first.off_iters} off-policy iterations, forced by \
+kl_threshold=1e9). Plain epoch: the plain loop's collection and the brute-force search, with \
+the same off-policy iterations:
+
+{epoch}
+
+**float32 vs float64** ({check["setting"]}; one float64 rollout shared by both): the kNN \
+entropies of the same particles differ by at most {check["entropy_max_abs_diff"]:.1e} nats. The \
+update moves the objective from {check["objective_start"]:.5f} to {check["objective_float64"]:.5f} \
+in float64 and to {check["objective_float32_shared_neighbours"]:.5f} in float32 with the same \
+neighbour sets (difference {check["objective_abs_diff_shared_neighbours"]:.1e} nats; KL \
+{check["kl_float64"]:.4g} and {check["kl_float32_shared_neighbours"]:.4g}). With each dtype's own \
+search it reaches {check["objective_float32"]:.5f} (difference {check["objective_abs_diff"]:.1e}; \
+KL {check["kl_float32"]:.4g}): rounding the particles to float32 changes \
+{check["neighbour_index_mismatch"]:.0%} of the neighbour-list entries, among particles at \
+(almost) the same distance (agents the slope holds against a wall or the arena's edge), and \
+which of those tied particles belong to N_i^k changes the gradient, not the entropy.
+
+**Targets**
+
+{goals}
+"""

@@ -1,0 +1,227 @@
+"""`make bench`: thesis-scale speed of hmepol on this machine, each figure beside a baseline.
+
+Settings are the shipped thesis presets (tables A.1-A.2): slope, 200 trajectories x 400 steps,
+B = 5, k = 30; corridor, 100 x 400, B = 1, k = 30; Mepol (Markovian policy) and HMepol (recursive
+policy, bptt = 1). For each: environment steps per second of the batched collection against a
+plain per-step Python loop over single environments; neighbour search per epoch (kdtree and
+torch) against a brute-force search; one whole epoch with 30 off-policy iterations, and from it
+the seconds per off-policy iteration against the machine's measured matmul throughput. Then a
+float32 against float64 check. Writes ``bench.json`` and ``bench.md`` to ``--out``.
+
+Other processes may share the machine: each ratio compares figures taken in the same run, short
+timings keep the fastest of their repetitions, and the report gives the load average.
+"""
+
+from __future__ import annotations
+
+import os
+
+# OpenMP threads that spin while they wait hold on to a core that another process's thread, or
+# their own partner, needs: on a shared machine sleeping waits degrade gracefully. Set before
+# torch loads OpenMP; an explicit setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+from hydra import compose, initialize_config_module  # noqa: E402
+from hydra.core.global_hydra import GlobalHydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from benchmarks import baseline  # noqa: E402
+from benchmarks.measure import (  # noqa: E402
+    best_time,
+    brute_force_seconds,
+    cpu_name,
+    forward_flops,
+    layer_matmul_flops,
+    matmul_flops,
+)
+from benchmarks.results import OFF_ITERS, Row, markdown, targets  # noqa: E402
+from hmepol_cli import estimators  # noqa: E402
+from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
+from hmepol_cli.config import validate  # noqa: E402
+from hmepol_cli.envs import make_world  # noqa: E402
+from hmepol_cli.rollout import collect, draw_configs  # noqa: E402
+from hmepol_cli.trainer import Trainer, keep_freed_memory  # noqa: E402
+
+ENVS = ("slope", "corridor")
+ALGOS = ("mepol", "hmepol")
+
+
+def thesis_config(env: str, algo: str, overrides: list[str]) -> DictConfig:
+    """The shipped preset ``{env}_{algo}``, with every off-policy iteration forced to run."""
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
+        cfg = compose(
+            "config",
+            overrides=[
+                f"experiment={env}_{algo}",
+                "progress=false",
+                "algo.kl_threshold=1e9",  # a trust region no step leaves
+                f"algo.max_off_iters={OFF_ITERS}",
+                *overrides,
+            ],
+        )
+    GlobalHydra.instance().clear()
+    validate(cfg)
+    return cfg
+
+
+def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> Row:
+    trainer = Trainer(thesis_config(env, algo, args.override), work / f"{env}-{algo}")
+    a, k = trainer.cfg.algo, trainer.cfg.estimator.k
+    row = Row(env, algo, a.trajectories * a.horizon, forward_flops(trainer.policy))
+
+    configs = draw_configs(trainer.world, a.trajectories, a.batch_size, trainer.generator)
+    rollouts = []
+
+    def collection() -> None:
+        rollouts.append(
+            collect(trainer.world, trainer.policy, configs, a.horizon, trainer.generator)
+        )
+
+    # The plain loop and the batched collection take turns, so that both see the same load.
+    for _ in range(args.repeats):
+        plain, row.plain_steps_timed = baseline.steps_per_second(
+            trainer.world, trainer.policy, a.horizon, args.plain_trajectories
+        )
+        row.plain_steps_per_s = max(row.plain_steps_per_s, plain)
+        row.steps_per_s = max(row.steps_per_s, row.particles / best_time(collection, 1))
+
+    particles = estimators.particles_by_batch(rollouts[-1].particles, a.batch_size)
+    search = estimators.nearest_neighbours
+    row.kdtree_s = best_time(lambda: search(particles, k, "kdtree"), args.repeats)
+    row.torch_s = best_time(lambda: search(particles, k, "torch"), args.repeats)
+    row.brute_force_s, row.brute_force_batches_timed = brute_force_seconds(
+        particles, k, args.brute_force_batches
+    )
+
+    layer_before, square_before = layer_matmul_flops(row.particles), matmul_flops()
+    stats = trainer.epoch()
+    row.layer_matmul_flops = max(layer_before, layer_matmul_flops(row.particles))
+    row.square_matmul_flops = max(square_before, matmul_flops())
+    row.collect_s, row.neighbours_s = stats.seconds["collect"], stats.seconds["neighbours"]
+    row.update_s, row.epoch_s = stats.seconds["update"], stats.seconds["epoch"]
+    row.off_iters = stats.update.off_iters
+    return row
+
+
+def dtype_check(args: argparse.Namespace, work: Path) -> dict:
+    """float32 against float64 on the same particles and the same initial weights.
+
+    Reduced scale (slope HMepol, 50 trajectories, 10 off-policy iterations). One float64 rollout
+    is shared (sampling draws different random numbers in each dtype). Its particles' kNN
+    entropies in both dtypes; then the trust-region update in both dtypes, first each with the
+    neighbours searched on its own particles, then both with the float64 neighbour sets (which
+    isolates arithmetic precision from tie-breaking between coincident particles).
+    """
+    small = ["algo.trajectories=50", "algo.max_off_iters=10", *args.override]
+
+    def trainer(dtype: str) -> Trainer:  # same seed: same initial weights in either dtype
+        return Trainer(thesis_config("slope", "hmepol", [*small, f"dtype={dtype}"]), work / dtype)
+
+    t64 = trainer("float64")
+    a, k = t64.cfg.algo, t64.cfg.estimator.k
+    configs = draw_configs(t64.world, a.trajectories, a.batch_size, t64.generator)
+    r64 = collect(t64.world, t64.policy, configs, a.horizon, t64.generator)
+    r32 = dataclasses.replace(
+        r64,
+        states=r64.states.float(),
+        actions=r64.actions.float(),
+        histories=r64.histories.float(),
+        log_probs=r64.log_probs.float(),
+    )
+    n64, n32 = (
+        estimators.nearest_neighbours(
+            estimators.particles_by_batch(r.particles, a.batch_size), k, "kdtree"
+        )
+        for r in (r64, r32)
+    )
+    shared = dataclasses.replace(n64, radius=n64.radius.float())
+    h64, h32 = estimators.knn_entropy(n64), estimators.knn_entropy(n32)
+    u64 = t64.trust_region_update(r64, n64)
+    u32 = trainer("float32").trust_region_update(r32, n32)
+    u32_shared = trainer("float32").trust_region_update(r32, shared)
+    o64, o32, o32_shared = (float(u.entropies.mean()) for u in (u64, u32, u32_shared))
+    return {
+        "setting": f"slope HMepol, {a.trajectories} trajectories x {a.horizon} steps, "
+        f"B={a.batch_size}, k={k}, {u64.off_iters} off-policy iterations",
+        "entropy_max_abs_diff": float((h64 - h32.double()).abs().max()),
+        "neighbour_index_mismatch": float((n64.indices != n32.indices).double().mean()),
+        "objective_start": float(h64.mean()),
+        "objective_float64": o64,
+        "objective_float32": o32,
+        "objective_abs_diff": abs(o64 - o32),
+        "objective_float32_shared_neighbours": o32_shared,
+        "objective_abs_diff_shared_neighbours": abs(o64 - o32_shared),
+        "kl_float64": u64.kl,
+        "kl_float32": u32.kl,
+        "kl_float32_shared_neighbours": u32_shared.kl,
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.run", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench"))
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS)
+    parser.add_argument("--algos", nargs="+", default=list(ALGOS), choices=ALGOS)
+    parser.add_argument("--repeats", type=int, default=3, help="repetitions of short timings")
+    parser.add_argument(
+        "--plain-trajectories", type=int, default=4, help="trajectories the plain loop runs"
+    )
+    parser.add_argument(
+        "--brute-force-batches", type=int, default=10, help="mini-batches brute force searches"
+    )
+    parser.add_argument(
+        "--override", nargs="*", default=[], help="extra Hydra overrides (smoke runs)"
+    )
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    start, load_before = time.perf_counter(), os.getloadavg()
+    for env in args.envs:  # the plain loop must simulate the same walls as the batched world
+        world = make_world(thesis_config(env, "mepol", args.override).env)
+        if baseline.check_same_physics(world) != 0.0:
+            raise SystemExit(f"the plain loop's {env} physics differ from the batched world's")
+
+    keep_freed_memory()  # the trainer's allocator settings, for the matmul references too
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for env in args.envs:
+            for algo in args.algos:
+                rows.append(bench_setting(env, algo, args, Path(tmp)))
+                print(f"{rows[-1].label}: epoch {rows[-1].epoch_s:.1f} s", flush=True)
+        check = dtype_check(args, Path(tmp))
+    meta = {
+        "machine": f"{cpu_name()}, {os.cpu_count()} cores",
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+        "load_before": " ".join(f"{x:.1f}" for x in load_before),
+        "load_after": " ".join(f"{x:.1f}" for x in os.getloadavg()),
+        "seconds": time.perf_counter() - start,
+        "repeats": args.repeats,
+        "targets": targets(rows),
+    }
+    text = markdown(rows, check, meta)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench.md").write_text(text)
+    rows_out = [{**dataclasses.asdict(r), **r.derived()} for r in rows]
+    (args.out / "bench.json").write_text(
+        json.dumps({"meta": meta, "rows": rows_out, "dtype_check": check}, indent=2)
+    )
+    print(text)
+    print(f"written: {args.out / 'bench.md'}, {args.out / 'bench.json'}")
+
+
+if __name__ == "__main__":
+    main()
