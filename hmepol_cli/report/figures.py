@@ -377,9 +377,11 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                     label="log(free area)" if x == 0 else None,
                 )
         # Limits from the bars, the seed dots and the bounds: a two-seed t-interval is clipped.
-        shown_values = [p.get_height() for p in ax.patches] + [
-            float(v) for c in ax.collections for v in np.asarray(c.get_offsets())[:, 1]
-        ] + [config_bound(run, c) for c in configs]
+        shown_values = (
+            [p.get_height() for p in ax.patches]
+            + [float(v) for c in ax.collections for v in np.asarray(c.get_offsets())[:, 1]]
+            + [config_bound(run, c) for c in configs]
+        )
         shown_values = np.array([v for v in shown_values if np.isfinite(v)] + [0.0])
         lo, hi = shown_values.min(), shown_values.max()
         pad = max(0.15 * (hi - lo), 0.25)
@@ -609,6 +611,7 @@ def finetune_returns(
                     ax.fill_between(epochs, mean - half, mean + half, color=colour, alpha=0.2, lw=0)
             title = names[config] if config < len(names) else f"{config}"
             ax.set_title(f"config {config}: {title}", fontsize=10)
+            ax.set_ylim(-0.05, 1.05)  # a return is the share of episodes that reached the goal
             ax.set_xlabel("fine-tuning epoch")
             ax.set_ylabel("average return")
             ax.grid(alpha=0.3)
