@@ -17,7 +17,9 @@ from omegaconf import DictConfig, OmegaConf
 
 CHECKPOINT = Path("checkpoints") / "last.pt"
 RUN_INFO = "run.json"
-RUN_CONFIG = "config.yaml"  # the resolved config a run started with (Hydra's .hydra/ may be overwritten)
+RUN_CONFIG = (
+    "config.yaml"  # the resolved config a run started with (Hydra's .hydra/ may be overwritten)
+)
 
 
 class RunDirError(ValueError):

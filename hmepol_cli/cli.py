@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import re
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -112,7 +112,11 @@ def _train(cfg: DictConfig) -> str | None:
     info_file = run_dir / RUN_INFO
     if not resuming and info_file.exists():
         info = read_json(info_file)
-        if cfg.skip_finished and info.get("status") == "finished" and info.get("epochs_done", 0) >= cfg.epochs:
+        if (
+            cfg.skip_finished
+            and info.get("status") == "finished"
+            and info.get("epochs_done", 0) >= cfg.epochs
+        ):
             print(f"hmepol: {run_dir} already finished ({cfg.epochs} epochs); skipped")
             return str(run_dir)
         resuming = True  # an interrupted sweep job continues where it stopped
@@ -157,8 +161,15 @@ def _report(args: list[str]) -> None:
 
     from hmepol_cli.report import run_report
 
-    parser = argparse.ArgumentParser(prog="hmepol report", description="Thesis figures from finished runs.")
-    parser.add_argument("runs", nargs="?", default="outputs", help="folder holding run directories (default: outputs)")
+    parser = argparse.ArgumentParser(
+        prog="hmepol report", description="Thesis figures from finished runs."
+    )
+    parser.add_argument(
+        "runs",
+        nargs="?",
+        default="outputs",
+        help="folder holding run directories (default: outputs)",
+    )
     parser.add_argument("--out", default=None, help="report folder (default: RUNS/report)")
     ns = parser.parse_args(args)
     runs = Path(ns.runs)
@@ -176,7 +187,9 @@ def _show(args: list[str]) -> None:
     from hmepol_cli.envs import ENVIRONMENTS, make_world
     from hmepol_cli.envs.render import show_world
 
-    parser = argparse.ArgumentParser(prog="hmepol show", description="Draw every configuration of a world.")
+    parser = argparse.ArgumentParser(
+        prog="hmepol show", description="Draw every configuration of a world."
+    )
     parser.add_argument("overrides", nargs="*", help="env=NAME [wind=FORCE]")
     parser.add_argument("--out", default=None, help="PNG file (default: outputs/show/<env>.png)")
     ns = parser.parse_args(args)
@@ -224,7 +237,9 @@ def main(argv: list[str] | None = None) -> None:
         sys.argv = [prog, *rest]
         train_app()
     elif command == "sweep":
-        launcher = [] if any(a.startswith("hydra/launcher=") for a in rest) else ["hydra/launcher=local"]
+        launcher = (
+            [] if any(a.startswith("hydra/launcher=") for a in rest) else ["hydra/launcher=local"]
+        )
         sys.argv = [prog, "--multirun", *launcher, *rest]
         train_app()
     elif command == "finetune":
@@ -235,7 +250,10 @@ def main(argv: list[str] | None = None) -> None:
     elif command == "show":
         _show(rest)
     else:
-        fail(f"unknown command {command!r}; choose train, sweep, report, finetune or show (hmepol --help)")
+        fail(
+            f"unknown command {command!r}; choose train, sweep, report, finetune or show "
+            "(hmepol --help)"
+        )
 
 
 if __name__ == "__main__":

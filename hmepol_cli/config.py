@@ -8,7 +8,6 @@ that have the right type but no meaning (k <= 0, alpha outside (0, 1], negative 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig
@@ -36,7 +35,9 @@ class AlgoConfig:
     kl_threshold: float = 15.0  # delta, trust region (Algorithm 3.1)
     lr: float = 1e-5
     max_off_iters: int = 30
-    backtrack_tries: int = 10  # learning-rate halvings allowed when the first step leaves the region
+    backtrack_tries: int = (
+        10  # learning-rate halvings allowed when the first step leaves the region
+    )
     backtrack_coeff: float = 2.0
 
 
@@ -79,7 +80,7 @@ class Config:
     device: str = "cpu"  # cpu | cuda | auto
     dtype: str = "float32"  # float32 | float64
     epochs: int = 20
-    resume: Optional[str] = None
+    resume: str | None = None
     wind: float = 0.4
     progress: bool = True
     threads: int = 0  # torch threads; 0 = leave torch's default (sweeps set 1 per job)

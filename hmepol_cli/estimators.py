@@ -73,7 +73,9 @@ def _kdtree_search(particles: torch.Tensor, k: int) -> tuple[torch.Tensor, torch
     return torch.from_numpy(idx).to(device), torch.from_numpy(dist).to(device, particles.dtype)
 
 
-def _torch_search(particles: torch.Tensor, k: int, chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
+def _torch_search(
+    particles: torch.Tensor, k: int, chunk: int = 4096
+) -> tuple[torch.Tensor, torch.Tensor]:
     x = particles.detach()
     m, _, dim = x.shape
     idx_parts, dist_parts = [], []
@@ -110,7 +112,10 @@ def _split_self(idx: torch.Tensor, dist: torch.Tensor, k: int, dim: int) -> Neig
 
 
 def log_ball_volume(radius: torch.Tensor, dim: int, eps: float = 1e-10) -> torch.Tensor:
-    """log V of the dim-ball of each radius, floored at log(eps) so coincident particles stay finite."""
+    """log V of the dim-ball of each radius, floored at log(eps).
+
+    The floor keeps coincident particles (an agent pinned in a corner) finite.
+    """
     log_unit = (dim / 2) * math.log(math.pi) - math.lgamma(dim / 2 + 1)
     log_v = dim * torch.log(radius.clamp_min(TINY)) + log_unit
     return log_v.clamp_min(math.log(eps))

@@ -44,7 +44,11 @@ def save_positions(path: Path, positions: dict[int, np.ndarray]) -> None:
 
 def load_positions(path: Path) -> dict[int, np.ndarray]:
     with np.load(path, allow_pickle=False) as data:
-        return {int(k.removeprefix("positions_c")): data[k] for k in data.files if k.startswith("positions_c")}
+        return {
+            int(k.removeprefix("positions_c")): data[k]
+            for k in data.files
+            if k.startswith("positions_c")
+        }
 
 
 def evaluate_and_save(

@@ -13,7 +13,10 @@ def mean(entropies: torch.Tensor) -> torch.Tensor:
 
 
 def cvar(entropies: torch.Tensor, alpha: float) -> torch.Tensor:
-    """alpha-Mepol, eq. 3.3: CVaR_alpha, the mean of the lowest ceil(alpha * M) entropies. (M,) -> ()"""
+    """alpha-Mepol, eq. 3.3: CVaR_alpha, the mean of the lowest ceil(alpha * M) entropies.
+
+    (M,) -> ()
+    """
     if not 0 < alpha <= 1:
         raise ValueError(f"alpha={alpha!r} must be in (0, 1]")
     count = max(1, math.ceil(alpha * entropies.numel() - 1e-9))

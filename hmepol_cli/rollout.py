@@ -26,7 +26,7 @@ class Rollout:
 
     @property
     def particles(self) -> torch.Tensor:
-        """The states the actions produced, s_1 .. s_T: the particles of the entropy estimate. (N, T, d)"""
+        """s_1 .. s_T, the states the actions produced: the particles of the estimate. (N, T, d)"""
         return self.states[:, 1:]
 
     @property

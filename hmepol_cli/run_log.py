@@ -67,7 +67,11 @@ class RunLog:
 
     def append(self, epoch: int, stats, n_configs: int) -> None:
         u = stats.update
-        row = {"epoch": epoch, "entropy": float(stats.entropies.mean()), "objective": stats.objective}
+        row = {
+            "epoch": epoch,
+            "entropy": float(stats.entropies.mean()),
+            "objective": stats.objective,
+        }
         for c in range(n_configs):
             mask = stats.batch_configs == c
             row[f"entropy_c{c}"] = float(stats.entropies[mask].mean()) if mask.any() else math.nan

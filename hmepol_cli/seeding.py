@@ -22,7 +22,9 @@ def get_device(name: str = "auto") -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device='cuda' was asked for but no CUDA GPU is available; use cpu or auto")
+        raise ValueError(
+            "device='cuda' was asked for but no CUDA GPU is available; use cpu or auto"
+        )
     return torch.device(name)
 
 

@@ -113,7 +113,11 @@ class Trainer:
             stats = self.epoch()
             self.log.append(epoch, stats, self.world.n_configs)
             self.save(epoch + 1)
-            bar.set_postfix(H=f"{stats.entropies.mean():.3f}", KL=f"{stats.update.kl:.3g}", it=stats.update.off_iters)
+            bar.set_postfix(
+                H=f"{stats.entropies.mean():.3f}",
+                KL=f"{stats.update.kl:.3g}",
+                it=stats.update.off_iters,
+            )
             if cfg.eval.every and (epoch + 1) % cfg.eval.every == 0 and epoch + 1 < cfg.epochs:
                 self.evaluate(f"epoch_{epoch + 1:04d}")
         bar.close()
@@ -141,10 +145,17 @@ class Trainer:
             objective=float(objective(entropies, a.objective, a.alpha)),
             update=update,
             history_max=float(rollout.histories.abs().max()) if rollout.histories.numel() else 0.0,
-            seconds={"collect": t1 - t0, "neighbours": t2 - t1, "update": t3 - t2, "epoch": t3 - t0},
+            seconds={
+                "collect": t1 - t0,
+                "neighbours": t2 - t1,
+                "update": t3 - t2,
+                "epoch": t3 - t0,
+            },
         )
 
-    def trust_region_update(self, rollout: Rollout, neighbours: estimators.Neighbours) -> UpdateResult:
+    def trust_region_update(
+        self, rollout: Rollout, neighbours: estimators.Neighbours
+    ) -> UpdateResult:
         a, policy, optimizer = self.cfg.algo, self.policy, self.optimizer
 
         def evaluate(behaviour: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
@@ -193,8 +204,15 @@ class Trainer:
         # A generator of its own, so evaluation never shifts the training stream (exact resume).
         generator = make_generator(self.device, zlib.crc32(f"{self.cfg.seed}/{name}".encode()))
         return evaluate_and_save(
-            self.world, self.policy, self.run_dir / "eval", name, e.trajectories, e.horizon,
-            generator, plot_trajectories=e.plot_trajectories, plot_every=e.plot_every,
+            self.world,
+            self.policy,
+            self.run_dir / "eval",
+            name,
+            e.trajectories,
+            e.horizon,
+            generator,
+            plot_trajectories=e.plot_trajectories,
+            plot_every=e.plot_every,
         )
 
 
@@ -207,7 +225,9 @@ def _snapshot(policy: torch.nn.Module, optimizer: torch.optim.Optimizer) -> tupl
     return _clone(policy.state_dict()), _clone(optimizer.state_dict())
 
 
-def _load_snapshot(policy: torch.nn.Module, optimizer: torch.optim.Optimizer, snap: tuple[dict, dict]) -> None:
+def _load_snapshot(
+    policy: torch.nn.Module, optimizer: torch.optim.Optimizer, snap: tuple[dict, dict]
+) -> None:
     policy.load_state_dict(snap[0])
     # load_state_dict keeps the given tensors, which Adam then updates in place: hand it a copy.
     optimizer.load_state_dict(_clone(snap[1]))

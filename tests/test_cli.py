@@ -38,7 +38,11 @@ TINY = [
 def hmepol(*args: str, cwd: Path, check: bool = True, **kw) -> subprocess.CompletedProcess:
     proc = subprocess.run(
         [sys.executable, "-m", "hmepol_cli.cli", *args],
-        cwd=cwd, capture_output=True, text=True, timeout=300, **kw,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        **kw,
     )
     if check and proc.returncode != 0:
         raise AssertionError(f"hmepol {' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}")
@@ -82,7 +86,12 @@ def test_algo_hmepol_selects_recursive_policy_but_any_combination_works(hydra_co
 def test_thesis_presets_carry_table_values(hydra_compose):
     cfg = hydra_compose(config_name="config", overrides=["experiment=corridor_hmepol"])
     assert (cfg.env.name, cfg.algo.name, cfg.policy.name) == ("corridor", "hmepol", "recursive")
-    assert (cfg.algo.trajectories, cfg.algo.batch_size, cfg.algo.kl_threshold, cfg.algo.lr) == (100, 1, 0.1, 4e-5)
+    assert (cfg.algo.trajectories, cfg.algo.batch_size, cfg.algo.kl_threshold, cfg.algo.lr) == (
+        100,
+        1,
+        0.1,
+        4e-5,
+    )
     demo = hydra_compose(config_name="config", overrides=["experiment=demo"])
     assert demo.epochs == 15 and demo.algo.trajectories == 40  # presets win over top-level defaults
     cfg = hydra_compose(config_name="config", overrides=["experiment=multigrid_alphamepol"])
@@ -132,8 +141,15 @@ def test_resume_of_a_folder_that_is_not_a_run_is_refused_untouched(tmp_path):
 def test_training_raises_entropy_above_the_random_policy(tmp_path):
     run = tmp_path / "run"
     hmepol(
-        "train", "experiment=demo", "epochs=12", "algo.trajectories=20", "eval.trajectories=4",
-        "progress=false", "seed=1", f"hydra.run.dir={run}", cwd=tmp_path,
+        "train",
+        "experiment=demo",
+        "epochs=12",
+        "algo.trajectories=20",
+        "eval.trajectories=4",
+        "progress=false",
+        "seed=1",
+        f"hydra.run.dir={run}",
+        cwd=tmp_path,
     )
     rows = pd.read_csv(run / "epochs.csv")
     assert list(rows.epoch) == list(range(12))
@@ -163,9 +179,20 @@ def test_killed_run_resumes_with_every_epoch_once_and_the_same_curves(tmp_path):
     hmepol("train", *TINY, f"epochs={epochs}", f"hydra.run.dir={reference}", cwd=tmp_path)
     run = tmp_path / "killed"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hmepol_cli.cli", "train", *TINY, f"epochs={epochs}",
-         "algo.max_off_iters=30", f"hydra.run.dir={run}"],
-        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        [
+            sys.executable,
+            "-m",
+            "hmepol_cli.cli",
+            "train",
+            *TINY,
+            f"epochs={epochs}",
+            "algo.max_off_iters=30",
+            f"hydra.run.dir={run}",
+        ],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
     )
     deadline = time.time() + 120
     csv = run / "epochs.csv"
@@ -184,7 +211,14 @@ def test_killed_run_resumes_with_every_epoch_once_and_the_same_curves(tmp_path):
     # max_off_iters on the command line is ignored on resume: the run keeps its own config,
     # so the killed run (30 iterations) differs from the reference (5) but not from itself.
     full = tmp_path / "uninterrupted"
-    hmepol("train", *TINY, f"epochs={epochs}", "algo.max_off_iters=30", f"hydra.run.dir={full}", cwd=tmp_path)
+    hmepol(
+        "train",
+        *TINY,
+        f"epochs={epochs}",
+        "algo.max_off_iters=30",
+        f"hydra.run.dir={full}",
+        cwd=tmp_path,
+    )
     cols = ["entropy", "objective", "entropy_iw", "kl", "off_iters"]
     pd.testing.assert_frame_equal(rows[cols], pd.read_csv(full / "epochs.csv")[cols])
     assert len(expected) == epochs
@@ -193,16 +227,37 @@ def test_killed_run_resumes_with_every_epoch_once_and_the_same_curves(tmp_path):
 def test_report_and_finetune_read_what_training_wrote(tmp_path):
     for algo in ("mepol", "hmepol"):
         for seed in (0, 1):
-            hmepol("train", *TINY, "epochs=2", f"algo={algo}", f"seed={seed}",
-                   f"hydra.run.dir={tmp_path}/runs/{algo}-{seed}", cwd=tmp_path)
-    hmepol("finetune", f"init={tmp_path}/runs/hmepol-0", "epochs=2", "episodes=4", "horizon=20",
-           "targets=1", "config=0", "progress=false", f"hydra.run.dir={tmp_path}/runs/ft", cwd=tmp_path)
+            hmepol(
+                "train",
+                *TINY,
+                "epochs=2",
+                f"algo={algo}",
+                f"seed={seed}",
+                f"hydra.run.dir={tmp_path}/runs/{algo}-{seed}",
+                cwd=tmp_path,
+            )
+    hmepol(
+        "finetune",
+        f"init={tmp_path}/runs/hmepol-0",
+        "epochs=2",
+        "episodes=4",
+        "horizon=20",
+        "targets=1",
+        "config=0",
+        "progress=false",
+        f"hydra.run.dir={tmp_path}/runs/ft",
+        cwd=tmp_path,
+    )
     assert len(pd.read_csv(tmp_path / "runs/ft/finetune.csv")) == 2
     proc = hmepol("report", str(tmp_path / "runs"), "--out", str(tmp_path / "report"), cwd=tmp_path)
     assert "report written to" in proc.stdout
     index = (tmp_path / "report" / "index.html").read_text()
     figures = sorted(p.name for p in (tmp_path / "report" / "figures").glob("*.png"))
-    for expected in ("slope_entropy_epochs.png", "slope_heatmaps.png", "slope_finetune_returns.png"):
+    for expected in (
+        "slope_entropy_epochs.png",
+        "slope_heatmaps.png",
+        "slope_finetune_returns.png",
+    ):
         assert expected in figures, figures
     assert all(name in index for name in figures)
     summary = pd.read_csv(tmp_path / "report" / "summary.csv")
@@ -210,7 +265,9 @@ def test_report_and_finetune_read_what_training_wrote(tmp_path):
 
 
 def test_show_draws_a_world(tmp_path):
-    proc = hmepol("show", "env=corridor", "wind=0.25", "--out", str(tmp_path / "c.png"), cwd=tmp_path)
+    proc = hmepol(
+        "show", "env=corridor", "wind=0.25", "--out", str(tmp_path / "c.png"), cwd=tmp_path
+    )
     assert (tmp_path / "c.png").stat().st_size > 10_000 and "drawn to" in proc.stdout
     bad = hmepol("show", "env=corridor", "wind=abc", cwd=tmp_path, check=False)
     assert bad.returncode != 0 and "wind='abc' is not a number" in bad.stderr

@@ -54,10 +54,16 @@ def on_wall_faces(world: NavigationWorld, config: int, n: int, g: torch.Generato
     pick = walls[torch.randint(len(walls), (n,), generator=g)]
     u = torch.rand(n, generator=g)
     side = torch.randint(4, (n,), generator=g)
-    x = torch.where(side == 0, pick[:, 0], torch.where(side == 1, pick[:, 2],
-                    pick[:, 0] + u * (pick[:, 2] - pick[:, 0])))
-    y = torch.where(side == 2, pick[:, 1], torch.where(side == 3, pick[:, 3],
-                    pick[:, 1] + u * (pick[:, 3] - pick[:, 1])))
+    x = torch.where(
+        side == 0,
+        pick[:, 0],
+        torch.where(side == 1, pick[:, 2], pick[:, 0] + u * (pick[:, 2] - pick[:, 0])),
+    )
+    y = torch.where(
+        side == 2,
+        pick[:, 1],
+        torch.where(side == 3, pick[:, 3], pick[:, 1] + u * (pick[:, 3] - pick[:, 1])),
+    )
     p = torch.stack((x, y), 1)
     configs = torch.full((n,), config)
     # A point on the seam of two touching walls is inside the wall, not on its face: keep only
@@ -69,8 +75,9 @@ def on_wall_faces(world: NavigationWorld, config: int, n: int, g: torch.Generato
     return p[ok & beside]
 
 
-def segment_crosses_wall(world: NavigationWorld, config: int, start: np.ndarray,
-                         end: np.ndarray) -> np.ndarray:
+def segment_crosses_wall(
+    world: NavigationWorld, config: int, start: np.ndarray, end: np.ndarray
+) -> np.ndarray:
     """True where the axis-separated move start -> (end_x, start_y) -> end enters a wall's interior.
 
     start, end (N, 2) -> (N,). The world moves along x first, then along y (base.py).
@@ -129,8 +136,10 @@ def grid_cells(rows: list[str], box: Box) -> set[tuple[int, int]]:
         (r, c)
         for r in range(len(rows))
         for c in range(len(rows[0]))
-        if -1 + c * size < box.x1 and -1 + (c + 1) * size > box.x0
-        and 1 - (r + 1) * size < box.y1 and 1 - r * size > box.y0
+        if -1 + c * size < box.x1
+        and -1 + (c + 1) * size > box.x0
+        and 1 - (r + 1) * size < box.y1
+        and 1 - r * size > box.y0
     }
 
 
@@ -255,8 +264,9 @@ def test_configurations_are_drawn_from_p_m(name):
 
 
 # ---------------------------------------------------------------- corridor wind
-def _corridor_run(world: CorridorWorld, config: int, stub: Box, steps: int, push: int,
-                  seed: int = 0) -> torch.Tensor:
+def _corridor_run(
+    world: CorridorWorld, config: int, stub: Box, steps: int, push: int, seed: int = 0
+) -> torch.Tensor:
     """Agents starting in the room just below ``stub``; they push north at full force for ``push``
     steps (all steps when push < 0), wiggling sideways at random around the stub's axis; after
     that their actions are uniform in [-0.2, 0.2]^2.
@@ -273,8 +283,9 @@ def _corridor_run(world: CorridorWorld, config: int, stub: Box, steps: int, push
     for t in range(steps):
         wiggle = (torch.rand(n, generator=g) - 0.5) * 0.4
         centre = (stub.x0 + stub.x1) / 2
-        actions = torch.stack(((centre - positions[:, 0] + wiggle).clamp(-0.2, 0.2),
-                               torch.zeros(n)), 1)
+        actions = torch.stack(
+            ((centre - positions[:, 0] + wiggle).clamp(-0.2, 0.2), torch.zeros(n)), 1
+        )
         if push < 0 or t < push:
             actions[:, 1] = 0.2
         else:
@@ -296,10 +307,12 @@ def test_pushing_into_the_downwind_entrance_never_gets_past_it(config, downwind)
     assert (weak[..., 1].max(dim=0).values > 3.0).all()
 
 
-@pytest.mark.parametrize("config, upwind, other", [(0, EAST_STUB, WEST_STUB),
-                                                   (1, WEST_STUB, EAST_STUB)])
-def test_entering_upwind_the_wind_carries_the_agent_around_the_whole_corridor(config, upwind,
-                                                                                 other):
+@pytest.mark.parametrize(
+    "config, upwind, other", [(0, EAST_STUB, WEST_STUB), (1, WEST_STUB, EAST_STUB)]
+)
+def test_entering_upwind_the_wind_carries_the_agent_around_the_whole_corridor(
+    config, upwind, other
+):
     world = CorridorWorld(wind=0.4)
     path = _corridor_run(world, config, upwind, steps=150, push=3)  # 3 steps in, then random
     x, y = path[..., 0], path[..., 1]

@@ -272,7 +272,9 @@ def test_tanh_encoder_keeps_the_history_bounded_where_relu_can_grow_without_boun
 
     torch.manual_seed(0)
     states = torch.rand(8, 2) * 2 - 1
-    sizes = dict(state_dim=2, action_dim=2, hidden=[16], encoder_hidden=[], history_size=6, init_log_std=-0.5)
+    sizes = dict(
+        state_dim=2, action_dim=2, hidden=[16], encoder_hidden=[], history_size=6, init_log_std=-0.5
+    )
     for activation in ("relu", "tanh"):
         policy = RecursivePolicy(encoder_activation=activation, **sizes)
         with torch.no_grad():  # an expansive recursion: identity x 2 on the history inputs

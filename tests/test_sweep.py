@@ -1,4 +1,4 @@
-"""Sweeps through Hydra's joblib launcher: every job's run, skipping finished ones, failures isolated."""
+"""Sweeps on the joblib launcher: a run per job, finished jobs skipped, failures isolated."""
 
 from __future__ import annotations
 
@@ -13,14 +13,27 @@ from tests.test_cli import TINY
 
 def sweep(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "sweep", *TINY, "epochs=1", *args,
-         f"hydra.sweep.dir={tmp_path / 'sweep'}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "hmepol_cli.cli",
+            "sweep",
+            *TINY,
+            "epochs=1",
+            *args,
+            f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
 
 
 def runs(root: Path) -> dict[Path, OmegaConf]:
-    return {p.parent: OmegaConf.load(p) for p in root.rglob("config.yaml") if p.parent.name != ".hydra"}
+    return {
+        p.parent: OmegaConf.load(p) for p in root.rglob("config.yaml") if p.parent.name != ".hydra"
+    }
 
 
 def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again(tmp_path):

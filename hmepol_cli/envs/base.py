@@ -89,7 +89,9 @@ class NavigationWorld:
         """Draw n configuration indices from p_M. (n,) long."""
         return torch.multinomial(self._probs, n, replacement=True, generator=generator)
 
-    def reset(self, configs: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    def reset(
+        self, configs: torch.Tensor, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """Initial positions, uniform in the start box. configs (N,) -> (N, 2)."""
         u = torch.rand(
             configs.shape[0], 2, device=self.device, dtype=self.dtype, generator=generator
@@ -127,9 +129,13 @@ class NavigationWorld:
         else:
             walls = self._shared_walls  # (1, W, 4)
         x, y = positions[:, 0], positions[:, 1]
-        x = _slide(x, y, displacement[:, 0], walls[..., 0], walls[..., 2], walls[..., 1], walls[..., 3])
+        x = _slide(
+            x, y, displacement[:, 0], walls[..., 0], walls[..., 2], walls[..., 1], walls[..., 3]
+        )
         x = x.clamp(self.arena.x0, self.arena.x1)
-        y = _slide(y, x, displacement[:, 1], walls[..., 1], walls[..., 3], walls[..., 0], walls[..., 2])
+        y = _slide(
+            y, x, displacement[:, 1], walls[..., 1], walls[..., 3], walls[..., 0], walls[..., 2]
+        )
         y = y.clamp(self.arena.y0, self.arena.y1)
         return torch.stack((x, y), dim=-1)
 
@@ -138,7 +144,9 @@ class NavigationWorld:
         """True where a position lies strictly inside one of its configuration's walls. (N,)"""
         walls = self._walls[configs]
         x, y = positions[:, :1], positions[:, 1:]
-        inside = (x > walls[..., 0]) & (x < walls[..., 2]) & (y > walls[..., 1]) & (y < walls[..., 3])
+        inside = (
+            (x > walls[..., 0]) & (x < walls[..., 2]) & (y > walls[..., 1]) & (y < walls[..., 3])
+        )
         return inside.any(dim=-1)
 
     def inside_arena(self, positions: torch.Tensor) -> torch.Tensor:

@@ -121,6 +121,8 @@ class GridWorld(NavigationWorld):
         magnitude = (mean + SLOPE_STD * z.clamp(lo, hi)).to(self.dtype)
         region = self._slope_region[configs]
         x, y = positions[:, 0], positions[:, 1]
-        inside = (x >= region[:, 0]) & (x <= region[:, 2]) & (y >= region[:, 1]) & (y <= region[:, 3])
+        inside = (
+            (x >= region[:, 0]) & (x <= region[:, 2]) & (y >= region[:, 1]) & (y <= region[:, 3])
+        )
         magnitude = torch.where(inside & (mean > 0), magnitude, torch.zeros_like(magnitude))
         return magnitude[:, None] * self._slope_dir[configs]

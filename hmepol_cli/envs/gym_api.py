@@ -133,11 +133,10 @@ class NavigationEnv(gym.Env[np.ndarray, np.ndarray]):
         self._t = 0
         return self._observation(), {"config": config}
 
-    def step(
-        self, action: np.ndarray
-    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        act = torch.as_tensor(np.asarray(action, dtype=np.float32).reshape(1, -1),
-                              dtype=self.world.dtype)
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        act = torch.as_tensor(
+            np.asarray(action, dtype=np.float32).reshape(1, -1), dtype=self.world.dtype
+        )
         self._position = self.world.step(self._position, act, self._config, self._generator)
         self._t += 1
         truncated = self._t >= self.horizon
@@ -214,16 +213,22 @@ class NavigationVectorEnv(VectorEnv):
         self._generator.manual_seed(int(self.np_random.integers(2**62)))
         options = options or {}
         mask = options.get("reset_mask")
-        mask = (torch.ones(self.num_envs, dtype=torch.bool, device=self.device) if mask is None
-                else torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device))
+        mask = (
+            torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
+            if mask is None
+            else torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device)
+        )
         configs = self._draw_configs()
         if options.get("config") is not None:
             _check_config(self.world, options["config"])
-            forced = torch.as_tensor(np.asarray(options["config"]), dtype=torch.long,
-                                     device=self.device).reshape(-1)
+            forced = torch.as_tensor(
+                np.asarray(options["config"]), dtype=torch.long, device=self.device
+            ).reshape(-1)
             if forced.numel() not in (1, self.num_envs):
-                raise ValueError(f"options['config'] has {forced.numel()} values; give 1 or "
-                                 f"num_envs={self.num_envs}")
+                raise ValueError(
+                    f"options['config'] has {forced.numel()} values; give 1 or "
+                    f"num_envs={self.num_envs}"
+                )
             configs = forced.expand(self.num_envs).clone()
         self._start(mask, configs)
         return self._observations(), self._info()
@@ -231,8 +236,9 @@ class NavigationVectorEnv(VectorEnv):
     def step(
         self, actions: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        act = torch.as_tensor(np.asarray(actions, dtype=np.float32), device=self.device,
-                              dtype=self.world.dtype).reshape(self.num_envs, -1)
+        act = torch.as_tensor(
+            np.asarray(actions, dtype=np.float32), device=self.device, dtype=self.world.dtype
+        ).reshape(self.num_envs, -1)
         restart = self._autoreset
         self._positions = self.world.step(self._positions, act, self._configs, self._generator)
         self._t += 1
@@ -242,8 +248,13 @@ class NavigationVectorEnv(VectorEnv):
         truncated = self._t >= self.horizon
         self._autoreset = truncated
         zeros = np.zeros(self.num_envs, dtype=bool)
-        return (self._observations(), np.zeros(self.num_envs), zeros,
-                truncated.cpu().numpy(), self._info())
+        return (
+            self._observations(),
+            np.zeros(self.num_envs),
+            zeros,
+            truncated.cpu().numpy(),
+            self._info(),
+        )
 
     def _draw_configs(self) -> torch.Tensor:
         return self.world.sample_configs(self.num_envs, self._generator).to(self.device)

@@ -45,23 +45,60 @@ def draw_world(
     if force and isinstance(world, GridWorld):
         _draw_slope_region(ax, world, config, zorder - 0.5)
     for b in world.walls[config]:
-        ax.add_patch(Rectangle((b.x0, b.y0), b.x1 - b.x0, b.y1 - b.y0, facecolor=WALL_COLOUR,
-                               edgecolor="none", zorder=zorder))
+        ax.add_patch(
+            Rectangle(
+                (b.x0, b.y0),
+                b.x1 - b.x0,
+                b.y1 - b.y0,
+                facecolor=WALL_COLOUR,
+                edgecolor="none",
+                zorder=zorder,
+            )
+        )
     if start:
         s = world.start
-        ax.add_patch(Rectangle((s.x0, s.y0), s.x1 - s.x0, s.y1 - s.y0, facecolor=START_COLOUR,
-                               alpha=0.5, edgecolor=START_COLOUR, linewidth=1.0,
-                               zorder=zorder + 0.1))
+        ax.add_patch(
+            Rectangle(
+                (s.x0, s.y0),
+                s.x1 - s.x0,
+                s.y1 - s.y0,
+                facecolor=START_COLOUR,
+                alpha=0.5,
+                edgecolor=START_COLOUR,
+                linewidth=1.0,
+                zorder=zorder + 0.1,
+            )
+        )
     if force:
         points, directions, length = force_arrows(world, config)
         if len(points):
             tails = points - directions * length / 2
-            ax.quiver(tails[:, 0], tails[:, 1], directions[:, 0], directions[:, 1],
-                      angles="xy", scale_units="xy", scale=1 / length, width=0.007,
-                      headwidth=4, headlength=4, headaxislength=3.5, color=FORCE_COLOUR,
-                      zorder=zorder + 0.2)
-    ax.add_patch(Rectangle((a.x0, a.y0), a.x1 - a.x0, a.y1 - a.y0, facecolor="none",
-                           edgecolor="black", linewidth=1.2, zorder=zorder + 0.3))
+            ax.quiver(
+                tails[:, 0],
+                tails[:, 1],
+                directions[:, 0],
+                directions[:, 1],
+                angles="xy",
+                scale_units="xy",
+                scale=1 / length,
+                width=0.007,
+                headwidth=4,
+                headlength=4,
+                headaxislength=3.5,
+                color=FORCE_COLOUR,
+                zorder=zorder + 0.2,
+            )
+    ax.add_patch(
+        Rectangle(
+            (a.x0, a.y0),
+            a.x1 - a.x0,
+            a.y1 - a.y0,
+            facecolor="none",
+            edgecolor="black",
+            linewidth=1.2,
+            zorder=zorder + 0.3,
+        )
+    )
     ax.set_xlim(a.x0, a.x1)
     ax.set_ylim(a.y0, a.y1)
     ax.set_aspect("equal")
@@ -95,13 +132,18 @@ def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 
             ax.axis("off")
             continue
         draw_world(ax, world, c)
-        ax.set_title(f"{c}: {world.config_names[c]}  (p = {world.config_probs[c]:.2g})\n"
-                     f"{describe_config(world, c)}", fontsize=9.5)
+        ax.set_title(
+            f"{c}: {world.config_names[c]}  (p = {world.config_probs[c]:.2g})\n"
+            f"{describe_config(world, c)}",
+            fontsize=9.5,
+        )
         ax.tick_params(labelsize=7)
     areas = sorted({round(world.free_area(c), 2) for c in range(n)})
     area = f"{areas[0]:.3g}" if len(areas) == 1 else f"{areas[0]:.3g} to {areas[-1]:.3g}"
-    fig.suptitle(f"{world.name}: free area {area}; walls grey, start area yellow, "
-                 f"force as arrows", fontsize=11)
+    fig.suptitle(
+        f"{world.name}: free area {area}; walls grey, start area yellow, force as arrows",
+        fontsize=11,
+    )
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -135,11 +177,16 @@ def force_arrows(world: NavigationWorld, config: int) -> tuple[np.ndarray, np.nd
         lattices = []
         for shift in (0.0, block / 2):
             lattice = _lattice(a.x0, a.y0, a.x1, a.y1, n) - shift
-            inside = ((lattice[:, 0] >= max(r.x0, a.x0)) & (lattice[:, 0] <= min(r.x1, a.x1))
-                      & (lattice[:, 1] >= max(r.y0, a.y0)) & (lattice[:, 1] <= min(r.y1, a.y1)))
+            inside = (
+                (lattice[:, 0] >= max(r.x0, a.x0))
+                & (lattice[:, 0] <= min(r.x1, a.x1))
+                & (lattice[:, 1] >= max(r.y0, a.y0))
+                & (lattice[:, 1] <= min(r.y1, a.y1))
+            )
             lattices.append(lattice[inside])
-        directions = [np.tile(np.asarray(slope.direction, dtype=float), (len(p), 1))
-                      for p in lattices]
+        directions = [
+            np.tile(np.asarray(slope.direction, dtype=float), (len(p), 1)) for p in lattices
+        ]
         length = 0.4 * (a.x1 - a.x0) / n  # 0.8 block: fits, with margins, a 1-block corridor
     else:
         return empty
@@ -167,8 +214,9 @@ def _free(world: NavigationWorld, config: int, points: np.ndarray, margin: float
     a = world.arena
     free = (x >= a.x0 + margin) & (x <= a.x1 - margin) & (y >= a.y0 + margin) & (y <= a.y1 - margin)
     for b in world.walls[config]:
-        free &= ~((x > b.x0 - margin) & (x < b.x1 + margin) & (y > b.y0 - margin)
-                  & (y < b.y1 + margin))
+        free &= ~(
+            (x > b.x0 - margin) & (x < b.x1 + margin) & (y > b.y0 - margin) & (y < b.y1 + margin)
+        )
     return free
 
 
@@ -179,12 +227,29 @@ def _draw_slope_region(ax: Axes, world: GridWorld, config: int, zorder: float) -
     a = world.arena
     r = slope.region or a
     x0, y0, x1, y1 = max(r.x0, a.x0), max(r.y0, a.y0), min(r.x1, a.x1), min(r.y1, a.y1)
-    ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, facecolor=REGION_COLOUR, alpha=0.3,
-                           edgecolor="none", zorder=zorder))
+    ax.add_patch(
+        Rectangle(
+            (x0, y0),
+            x1 - x0,
+            y1 - y0,
+            facecolor=REGION_COLOUR,
+            alpha=0.3,
+            edgecolor="none",
+            zorder=zorder,
+        )
+    )
 
 
 def _compass(direction: tuple[float, float]) -> str:
-    names = ("east", "north-east", "north", "north-west", "west", "south-west", "south",
-             "south-east")
+    names = (
+        "east",
+        "north-east",
+        "north",
+        "north-west",
+        "west",
+        "south-west",
+        "south",
+        "south-east",
+    )
     angle = math.degrees(math.atan2(direction[1], direction[0])) % 360
     return names[round(angle / 45) % 8]

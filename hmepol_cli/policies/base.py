@@ -12,7 +12,6 @@ import math
 import torch
 from torch import nn
 
-
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
 
 
@@ -47,7 +46,9 @@ class Policy(nn.Module):
         self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
 
     # -- to implement ----------------------------------------------------------------------
-    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(
+        self, states: torch.Tensor, history: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(s_t (N, d), h'_{t-1} (N, H)) -> (mean of a_t (N, a), h'_t (N, H))."""
         raise NotImplementedError
 
@@ -75,7 +76,9 @@ class Policy(nn.Module):
         if deterministic:
             actions = mean
         else:
-            noise = torch.randn(mean.shape, device=mean.device, dtype=mean.dtype, generator=generator)
+            noise = torch.randn(
+                mean.shape, device=mean.device, dtype=mean.dtype, generator=generator
+            )
             actions = mean + noise * torch.exp(self.log_std)
         return actions, self.gaussian_log_prob(mean, actions), next_history
 

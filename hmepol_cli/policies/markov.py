@@ -15,5 +15,7 @@ class MarkovPolicy(Policy):
         self.mean_net = mlp([state_dim, *hidden, action_dim])
         shrink_last_layer(self.mean_net)
 
-    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(
+        self, states: torch.Tensor, history: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         return self.mean_net(states), history

@@ -31,12 +31,15 @@ class RecursivePolicy(Policy):
         super().__init__(state_dim, action_dim, init_log_std)
         self.history_size = history_size
         self.encoder = mlp(
-            [state_dim + history_size, *encoder_hidden, history_size], out_activation=encoder_activation
+            [state_dim + history_size, *encoder_hidden, history_size],
+            out_activation=encoder_activation,
         )
         self.head = mlp([history_size, *hidden, action_dim])
         shrink_last_layer(self.head)
 
-    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(
+        self, states: torch.Tensor, history: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         next_history = self.encoder(torch.cat((states, history), dim=-1))  # h'_t = g(s_t, h'_{t-1})
         return self.head(next_history), next_history
 
@@ -58,7 +61,9 @@ class TwoHeadPolicy(Policy):
         self.history_head = mlp([hidden[-1], history_size], out_activation=encoder_activation)
         shrink_last_layer(self.mean_head)
 
-    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(
+        self, states: torch.Tensor, history: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         features = self.trunk(torch.cat((states, history), dim=-1))
         return self.mean_head(features), self.history_head(features)
 
@@ -78,7 +83,9 @@ class GRUPolicy(Policy):
         self.head = mlp([history_size, *hidden, action_dim])
         shrink_last_layer(self.head)
 
-    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(
+        self, states: torch.Tensor, history: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         next_history = self.cell(states, history)
         return self.head(next_history), next_history
 
@@ -99,7 +106,9 @@ class LSTMPolicy(Policy):
         self.head = mlp([history_size, *hidden, action_dim])
         shrink_last_layer(self.head)
 
-    def step(self, states: torch.Tensor, history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(
+        self, states: torch.Tensor, history: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         h, c = history.split(self.cell_size, dim=-1)
         h, c = self.cell(states, (h, c))
         return self.head(h), torch.cat((h, c), dim=-1)
