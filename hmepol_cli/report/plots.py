@@ -14,7 +14,8 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
+
+from hmepol_cli.envs.render import draw_world
 
 # One colour per algorithm in every figure of the report.
 ALGO_COLOURS = {
@@ -25,7 +26,6 @@ ALGO_COLOURS = {
 }
 OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#ff7f0e")
 LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1)), (0, (5, 2, 1, 2)))
-WALL_COLOUR = "0.45"
 BOUND_COLOUR = "0.25"  # the log(free area) line
 HEATMAP_CMAP = "viridis"
 DPI = 110
@@ -63,20 +63,10 @@ def world_extent(world, positions: np.ndarray | None = None) -> tuple[float, flo
 
 
 def draw_walls(ax, world, config: int) -> None:
-    """Grey rectangles for the walls of one configuration, the arena as the axes' frame."""
+    """The walls of one configuration (the world's own drawing), above the data."""
     if world is None:
         return
-    for box in world.walls[config]:
-        ax.add_patch(
-            Rectangle(
-                (box.x0, box.y0),
-                box.x1 - box.x0,
-                box.y1 - box.y0,
-                facecolor=WALL_COLOUR,
-                edgecolor="none",
-                zorder=3,
-            )
-        )
+    draw_world(ax, world, config, force=False, start=False, zorder=3)
 
 
 def _map_axes(ax, extent: tuple[float, float, float, float], title: str | None = None) -> None:
