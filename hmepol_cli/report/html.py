@@ -8,11 +8,11 @@ import html
 import os
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from hmepol_cli.report.figures import FigureRecord
 from hmepol_cli.report.runs import Group, Run, SkippedRun, format_wind
+from hmepol_cli.report.summary import format_number
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em;
@@ -37,13 +37,8 @@ def _table(frame: pd.DataFrame, digits: int = 3) -> str:
     numeric = {c for c in frame.columns if pd.api.types.is_numeric_dtype(frame[c])}
 
     def cell(column: str, value) -> str:
-        if isinstance(value, float | np.floating):
-            if not np.isfinite(value):
-                return "n/a"
-            if column in ("wind", "first_epoch_reaching_mepol_final"):
-                return f"{value:g}"
-            return f"{value:.{digits}f}"
-        return html.escape(str(value))
+        number = format_number(column, value, digits)
+        return number if number is not None else html.escape(str(value))
 
     head = "".join(
         f'<th class="{"" if c in numeric else "text"}">{html.escape(str(c))}</th>'

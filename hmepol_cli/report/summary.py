@@ -117,19 +117,25 @@ def finetune_table(runs: list[Run]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def format_number(column: str, value, digits: int = 3) -> str | None:
+    """A float as the tables show it ('n/a' for NaN); None for anything that is not a float."""
+    if not isinstance(value, float | np.floating):
+        return None
+    if not np.isfinite(value):
+        return "n/a"
+    if column in ("wind", "first_epoch_reaching_mepol_final"):
+        return f"{value:g}"
+    return f"{value:.{digits}f}"
+
+
 def to_markdown(frame: pd.DataFrame, digits: int = 3) -> str:
     """A GitHub Markdown table (numbers rounded; NaN shown as 'n/a')."""
     if frame.empty:
         return "_(none)_\n"
 
     def cell(column: str, value) -> str:
-        if isinstance(value, float | np.floating):
-            if not np.isfinite(value):
-                return "n/a"
-            if column in ("wind", "first_epoch_reaching_mepol_final"):
-                return f"{value:g}"
-            return f"{value:.{digits}f}"
-        return str(value).replace("|", "\\|")
+        number = format_number(column, value, digits)
+        return number if number is not None else str(value).replace("|", "\\|")
 
     header = "| " + " | ".join(frame.columns) + " |"
     rule = "|" + "|".join("---" for _ in frame.columns) + "|"
