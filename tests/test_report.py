@@ -321,3 +321,13 @@ def test_save_run_plots_writes_heatmap_and_trajectories(tmp_path):
     paths = save_run_plots(world, positions, tmp_path / "eval")
     assert sorted(p.name for p in paths) == ["heatmap.png", "trajectories.png"]
     assert all(p.stat().st_size > 1000 for p in paths)
+
+
+def test_figure_names_of_long_labels_stay_short_and_distinct():
+    from hmepol_cli.report.figures import slug
+
+    long_a = "Mepol (" + ", ".join(f"algo.key{i}={i}" for i in range(40)) + ")"
+    long_b = long_a.replace("key39=39", "key39=40")
+    assert len(slug(long_a)) <= 80 and len(slug(long_b)) <= 80
+    assert slug(long_a) != slug(long_b)
+    assert slug("α-Mepol") == "alpha-mepol"

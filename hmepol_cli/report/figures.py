@@ -8,6 +8,7 @@ one seed has no interval and is drawn without a band.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from collections.abc import Iterable
@@ -100,9 +101,15 @@ def load_world(env: str, wind: float):
         return None
 
 
-def slug(text: str) -> str:
+def slug(text: str, limit: int = 80) -> str:
+    """A file-name part for a label; long labels (many differing keys) are cut and hashed, so
+    names stay unique and within every filesystem's limit."""
     text = text.replace("α", "alpha").lower()
-    return re.sub(r"[^a-z0-9]+", "-", text).strip("-")
+    name = re.sub(r"[^a-z0-9]+", "-", text).strip("-")
+    if len(name) <= limit:
+        return name
+    digest = hashlib.sha1(name.encode()).hexdigest()[:10]
+    return f"{name[: limit - 11]}-{digest}"
 
 
 def winds_of(groups: list[Group]) -> list[float]:
