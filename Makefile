@@ -21,7 +21,8 @@ demo: install
 	hmepol finetune init=none $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/scratch
 	hmepol report $(DEMO_DIR) --out $(DEMO_DIR)/report
 
-test:
+# Installs first, so `make test` also works on a fresh machine (a no-op when already installed).
+test: install
 	$(PYTHON) -m pytest
 
 bench:
