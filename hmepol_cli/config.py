@@ -84,7 +84,6 @@ class Config:
     wind: float = 0.4
     progress: bool = True
     threads: int = 0  # torch threads; 0 = leave torch's default (sweeps set 1 per job)
-    checkpoint_every: int = 1
     skip_finished: bool = True  # a re-run of a sweep skips a run directory that already finished
 
 
