@@ -13,10 +13,11 @@ import time
 
 import numpy as np
 import torch
+from scipy.special import ndtr, ndtri
 
-from hmepol_cli.envs.base import WALL_GAP, NavigationWorld
+from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.envs.corridor import CorridorWorld
-from hmepol_cli.envs.grid import SLOPE_RANGE, SLOPE_STD, GridWorld
+from hmepol_cli.envs.grid import SLOPE_STD, GridWorld
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
@@ -30,7 +31,19 @@ class PlainWorld:
         walls = [(b.x0, b.y0, b.x1, b.y1) for b in world.walls[config]]
         self.walls = np.array(walls, dtype=np.float64).reshape(-1, 4)
         a = world.arena
-        self.arena = (a.x0, a.y0, a.x1, a.y1)
+        self.lo, self.hi = np.array([a.x0, a.y0]), np.array([a.x1, a.y1])
+        # Each wall and its mirror images across the edges: a reflected path touches a wall
+        # exactly when its straight, unreflected line touches one of them.
+        images = []
+        for mx in (None, self.lo[0], self.hi[0]):
+            for my in (None, self.lo[1], self.hi[1]):
+                w = self.walls.copy()
+                if mx is not None:
+                    w[:, [0, 2]] = 2 * mx - self.walls[:, [2, 0]]
+                if my is not None:
+                    w[:, [1, 3]] = 2 * my - self.walls[:, [3, 1]]
+                images.append(w)
+        self.obstacles = np.concatenate(images)
         if isinstance(world, CorridorWorld):
             field = world.wind_field[config]
             self.wind_boxes = np.array([(b.x0, b.y0, b.x1, b.y1) for b, _ in field])
@@ -41,10 +54,23 @@ class PlainWorld:
             big = 1e9
             r = slope.region
             self.slope_region = (r.x0, r.y0, r.x1, r.y1) if r else (-big, -big, big, big)
+            self.slope_cdf = (
+                ndtr(-slope.mean / SLOPE_STD),
+                ndtr((slope.high - slope.mean) / SLOPE_STD),
+            )
 
     def reset(self) -> np.ndarray:
         s = self.world.start
-        return np.array([s.x0, s.y0]) + self.rng.random(2) * np.array([s.x1 - s.x0, s.y1 - s.y0])
+        while True:
+            p = np.array([s.x0, s.y0]) + self.rng.random(2) * np.array([s.x1 - s.x0, s.y1 - s.y0])
+            if not self._in_wall(p):
+                return p
+
+    def _in_wall(self, p: np.ndarray) -> bool:
+        w = self.walls
+        return bool(
+            ((p[0] >= w[:, 0]) & (p[0] <= w[:, 2]) & (p[1] >= w[:, 1]) & (p[1] <= w[:, 3])).any()
+        )
 
     def force(self, position: np.ndarray) -> np.ndarray:
         x, y = position
@@ -61,41 +87,44 @@ class PlainWorld:
         x0, y0, x1, y1 = self.slope_region
         if slope.mean <= 0 or not (x0 <= x <= x1 and y0 <= y <= y1):
             return np.zeros(2)
-        lo, hi = (
-            (SLOPE_RANGE[0] - slope.mean) / SLOPE_STD,
-            (SLOPE_RANGE[1] - slope.mean) / SLOPE_STD,
-        )
-        magnitude = slope.mean + SLOPE_STD * np.clip(self.rng.standard_normal(), lo, hi)
-        return magnitude * np.asarray(slope.direction)
+        lo, hi = self.slope_cdf
+        magnitude = slope.mean + SLOPE_STD * ndtri(lo + self.rng.random() * (hi - lo))
+        return min(max(magnitude, 0.0), slope.high) * np.asarray(slope.direction)
 
     def step(self, position: np.ndarray, action: np.ndarray) -> np.ndarray:
         bound = self.world.max_action
-        return self.move(position, np.clip(action, -bound, bound) + self.force(position))
+        push = self.rng.random(2)
+        return self.move(position, np.clip(action, -bound, bound) + self.force(position), push)
 
-    def move(self, position: np.ndarray, displacement: np.ndarray) -> np.ndarray:
-        x, y = position
-        w = self.walls
-        x = min(
-            max(_slide(x, y, displacement[0], w[:, 0], w[:, 2], w[:, 1], w[:, 3]), self.arena[0]),
-            self.arena[2],
-        )
-        y = min(
-            max(_slide(y, x, displacement[1], w[:, 1], w[:, 3], w[:, 0], w[:, 2]), self.arena[1]),
-            self.arena[3],
-        )
-        return np.array([x, y])
+    def move(self, position: np.ndarray, displacement: np.ndarray, push: np.ndarray) -> np.ndarray:
+        if not self._blocked(position, displacement):
+            return self._reflect(position + displacement)
+        back = -np.sign(displacement) * push * self.world.push_back
+        return position if self._blocked(position, back) else self._reflect(position + back)
 
+    def _reflect(self, p: np.ndarray) -> np.ndarray:
+        out = p.copy()
+        for axis in (0, 1):
+            lo, hi = self.lo[axis], self.hi[axis]
+            if not lo <= p[axis] <= hi:
+                r = np.mod(p[axis] - lo, 2 * (hi - lo))
+                out[axis] = lo + (2 * (hi - lo) - r if r > hi - lo else r)
+        return out
 
-def _slide(along, across, delta, lo, hi, band_lo, band_hi) -> float:
-    target = along + delta
-    in_band = (across >= band_lo) & (across <= band_hi)
-    if delta > 0:
-        hit = in_band & (lo >= along) & (lo < target)
-        return min(target, (lo[hit] - WALL_GAP).min()) if hit.any() else target
-    if delta < 0:
-        hit = in_band & (hi <= along) & (hi > target)
-        return max(target, (hi[hit] + WALL_GAP).max()) if hit.any() else target
-    return target
+    def _blocked(self, p: np.ndarray, d: np.ndarray) -> bool:
+        if (np.abs(d) > self.hi - self.lo).any():
+            return True
+        enter, leave = np.zeros(len(self.obstacles)), np.ones(len(self.obstacles))
+        for axis in (0, 1):
+            lo, hi = self.obstacles[:, axis], self.obstacles[:, axis + 2]
+            if d[axis] == 0:
+                inside = (lo <= p[axis]) & (p[axis] <= hi)
+                enter = np.where(inside, enter, np.inf)
+                continue
+            t1, t2 = (lo - p[axis]) / d[axis], (hi - p[axis]) / d[axis]
+            enter = np.maximum(enter, np.minimum(t1, t2))
+            leave = np.minimum(leave, np.maximum(t1, t2))
+        return bool((enter <= leave).any())
 
 
 ACTIVATIONS = {torch.nn.ReLU: lambda x: np.maximum(x, 0.0), torch.nn.Tanh: np.tanh}
@@ -172,20 +201,31 @@ def steps_per_second(
 
 
 def check_same_physics(world: NavigationWorld, samples: int = 2000, seed: int = 0) -> float:
-    """Largest difference between the plain and the batched wall physics on random moves."""
+    """Largest difference between the plain and the batched wall physics on random moves from
+    free positions (hits, push-backs and reflections among them)."""
     rng = np.random.default_rng(seed)
     a = world.arena
-    positions = rng.uniform((a.x0, a.y0), (a.x1, a.y1), size=(samples, 2))
-    displacement = rng.uniform(-0.6, 0.6, size=(samples, 2))
     configs = rng.integers(0, world.n_configs, samples)
+    plain_worlds = [PlainWorld(world, int(c), rng) for c in configs]
+    positions = np.empty((samples, 2))
+    for i, env in enumerate(plain_worlds):
+        while True:
+            positions[i] = rng.uniform((a.x0, a.y0), (a.x1, a.y1))
+            if not env._in_wall(positions[i]):
+                break
+    displacement = rng.uniform(-0.6, 0.6, size=(samples, 2))
+    push = rng.random((samples, 2))
     batched_world = copy.copy(world).to("cpu", torch.float64)  # the caller's world stays as it is
     batched = batched_world.move(
-        torch.from_numpy(positions), torch.from_numpy(displacement), torch.from_numpy(configs)
+        torch.from_numpy(positions),
+        torch.from_numpy(displacement),
+        torch.from_numpy(configs),
+        torch.from_numpy(push),
     ).numpy()
     plain = np.stack(
         [
-            PlainWorld(world, int(c), rng).move(p, d)
-            for p, d, c in zip(positions, displacement, configs, strict=True)
+            env.move(p, d, u)
+            for env, p, d, u in zip(plain_worlds, positions, displacement, push, strict=True)
         ]
     )
     return float(np.abs(plain - batched).max())

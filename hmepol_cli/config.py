@@ -49,7 +49,10 @@ class PolicyConfig:
     history_size: int = 100  # length of h'_t
     encoder_activation: str = "relu"  # output of g: relu (thesis) | tanh (bounded history)
     bptt: str = "1"  # 1 (thesis) | n (truncated) | full (exact likelihoods)
-    init_log_std: float = -0.5
+    # The reference start for these worlds (REFERENCE_WORLDS.md): std 0.22, about the action bound.
+    init_log_std: float = -1.5
+    init_weights: str = "xavier"  # xavier (reference) | torch (torch's default)
+    init_mean_scale: float = 0.01  # the mean's output layer is scaled by this: a near-zero start
 
 
 @dataclass
@@ -155,5 +158,10 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"epochs={cfg.epochs!r} must be >= 0")
     parse_bptt(cfg.policy.bptt)
     _one_of("policy.encoder_activation", cfg.policy.encoder_activation, ("relu", "tanh"))
+    _one_of("policy.init_weights", cfg.policy.init_weights, ("xavier", "torch"))
+    if not cfg.policy.init_mean_scale >= 0:
+        raise ConfigError(
+            f"policy.init_mean_scale={cfg.policy.init_mean_scale!r} must be a number >= 0"
+        )
     if cfg.policy.history_size <= 0:
         raise ConfigError(f"policy.history_size={cfg.policy.history_size!r} must be > 0")

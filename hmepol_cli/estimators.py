@@ -121,6 +121,14 @@ def log_ball_volume(radius: torch.Tensor, dim: int, eps: float = 1e-10) -> torch
     return log_v.clamp_min(math.log(eps))
 
 
+def floor_share(neighbours: Neighbours, eps: float = 1e-10) -> torch.Tensor:
+    """Share of particles whose ball volume is at the floor eps: where the estimate and its
+    gradient are set by eps rather than by the states (coincident particles). -> ()"""
+    log_unit = (neighbours.dim / 2) * math.log(math.pi) - math.lgamma(neighbours.dim / 2 + 1)
+    log_v = neighbours.dim * torch.log(neighbours.radius.clamp_min(TINY)) + log_unit
+    return (log_v <= math.log(eps)).to(torch.float64).mean()
+
+
 def bias_correction(k: int) -> float:
     """log k - psi(k), the bias-correction term of eqs. 2.6 and 2.7."""
     return math.log(k) - float(torch.special.digamma(torch.tensor(float(k), dtype=torch.float64)))

@@ -51,7 +51,12 @@ def collect(
     generator: torch.Generator | None = None,
     deterministic: bool = False,
 ) -> Rollout:
-    """Run one trajectory per entry of ``configs`` for ``horizon`` steps."""
+    """Run one trajectory per entry of ``configs`` for ``horizon`` steps.
+
+    The randomness of the whole rollout is drawn up front from ``generator``, in a fixed order
+    (start positions, the policy's action noise (N, T, a), the world's noise (N, T, k)), so the
+    stream a run consumes does not depend on how its steps are computed.
+    """
     n, device, dtype = configs.shape[0], world.device, world.dtype
     # Storage is made outside inference mode: the off-policy loop differentiates through it.
     states = torch.empty(n, horizon + 1, world.state_dim, device=device, dtype=dtype)
@@ -60,11 +65,15 @@ def collect(
     log_probs = torch.empty(n, horizon, device=device, dtype=dtype)
     with torch.inference_mode():  # no autograd bookkeeping on the ~100 small ops of each step
         position = world.reset(configs, generator)
+        kw = dict(device=device, dtype=dtype, generator=generator)
+        action_noise = torch.randn(n, horizon, world.action_dim, **kw)
+        world_noise = torch.rand(n, horizon, world.noise_size, **kw)
         history = policy.initial_history(n, device, dtype)
         states[:, 0] = position
         for t in range(horizon):
             histories[:, t] = history
-            action, log_prob, history = policy.act(position, history, generator, deterministic)
-            position = world.step(position, action, configs, generator)
+            noise = None if deterministic else action_noise[:, t]
+            action, log_prob, history = policy.act(position, history, noise)
+            position = world.step(position, action, configs, noise=world_noise[:, t])
             actions[:, t], log_probs[:, t], states[:, t + 1] = action, log_prob, position
     return Rollout(states, actions, histories, log_probs, configs)

@@ -82,6 +82,7 @@ class RunLog:
             backtracks=u.backtracks,
             lr=u.lr,
             history_max=stats.history_max,
+            floor_share=stats.floor_share,
             seconds=stats.seconds["epoch"],
             collect_seconds=stats.seconds["collect"],
             neighbours_seconds=stats.seconds["neighbours"],

@@ -50,6 +50,7 @@ class EpochStats:
     objective: float
     update: UpdateResult
     history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
+    floor_share: float = 0.0  # share of particles whose ball volume hit the estimator's floor
     seconds: dict[str, float] = field(default_factory=dict)
 
 
@@ -145,6 +146,7 @@ class Trainer:
             objective=float(objective(entropies, a.objective, a.alpha)),
             update=update,
             history_max=float(rollout.histories.abs().max()) if rollout.histories.numel() else 0.0,
+            floor_share=float(estimators.floor_share(neighbours, self.cfg.estimator.eps)),
             seconds={
                 "collect": t1 - t0,
                 "neighbours": t2 - t1,

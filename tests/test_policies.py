@@ -244,14 +244,15 @@ def test_act_samples_the_gaussian_it_scores(name, tiny_policy):
     n = 20000
     states = torch.tensor([[-0.7, -0.8]], dtype=F64).expand(n, 2)
     history = torch.full((n, policy.history_size), 0.1, dtype=F64)
-    actions, log_p, _ = policy.act(states, history, generator=gen(6))
+    noise = torch.randn(n, 2, generator=gen(6), dtype=F64)
+    actions, log_p, _ = policy.act(states, history, noise)
     mean, _ = policy.step(states[:1], history[:1])
     std = policy.log_std.exp().detach()
     assert ((actions.mean(0) - mean[0]).abs() < 4 * std / n**0.5).all()
     torch.testing.assert_close(actions.std(0), std, rtol=0.02, atol=0)
     expected = norm.logpdf(actions.numpy(), mean.detach().numpy(), std.numpy()).sum(-1)
     torch.testing.assert_close(log_p, torch.from_numpy(expected), rtol=1e-12, atol=1e-12)
-    deterministic, _, _ = policy.act(states[:1], history[:1], deterministic=True)
+    deterministic, _, _ = policy.act(states[:1], history[:1], None)
     torch.testing.assert_close(deterministic, mean.detach())
 
 
@@ -278,3 +279,28 @@ def test_tanh_encoder_keeps_the_history_bounded_where_relu_can_grow_without_boun
             assert history.max() > 1e15
         else:
             assert history.abs().max() <= 1.0
+
+
+@pytest.mark.parametrize("name", ["markov", "recursive", "twohead", "gru", "lstm"])
+def test_the_default_policy_starts_as_the_reference_does(name):
+    """REFERENCE_WORLDS.md: log-std -1.5 (std 0.22), Xavier-uniform linear layers, near-zero
+    mean actions."""
+    from hmepol_cli.config import PolicyConfig
+    from hmepol_cli.policies import make_policy
+
+    torch.manual_seed(0)
+    policy = make_policy(PolicyConfig(name=name), state_dim=2, action_dim=2)
+    assert torch.equal(policy.log_std.detach(), torch.full((2,), -1.5))
+    linears = [m for m in policy.modules() if isinstance(m, torch.nn.Linear)]
+    mean_layer = linears[-1] if name != "twohead" else policy.mean_head[-1]
+    for layer in linears:
+        bound = (6 / (layer.in_features + layer.out_features)) ** 0.5
+        scale = 0.01 if layer is mean_layer else 1.0
+        assert layer.weight.abs().max() <= scale * bound
+        # Xavier-uniform fills its range: the largest weight is near the bound.
+        assert layer.weight.abs().max() > 0.9 * scale * bound
+    states = torch.rand(500, 2) * 2 - 1
+    history = policy.initial_history(500)
+    for _ in range(20):  # along a recursion too
+        mean, history = policy.step(states, history)
+        assert mean.abs().max() < 0.02

@@ -333,7 +333,7 @@ def test_finetune_from_a_pretrained_recursive_run(tmp_path):
         *TINY, f"init={run_dir}", "config=1", "bptt=full", f"output_dir={tmp_path / 'out'}"
     )
     df = pd.read_csv(finetune(cfg) / FINETUNE_CSV)
-    assert len(df) == 2 * 2 and (df.config == 1).all() and (df.config_name == "north").all()
+    assert len(df) == 2 * 2 and (df.config == 1).all() and (df.config_name == "north slope").all()
     assert (df.algo_init == "hmepol").all() and (df.init == str(run_dir.resolve())).all()
 
 

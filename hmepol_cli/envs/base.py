@@ -3,13 +3,24 @@
 A world is a *class* of configurations M_1..M_I (thesis 2.1.1) that share the arena, the state
 space (position (x, y)) and the action space (a displacement clipped to [-0.2, 0.2] per axis).
 Configurations differ by their walls and by an external force (a slope, a wind) that is added to
-the agent's displacement. Every method works on a whole batch of agents at once, as tensors, on
-the device the world was moved to.
+the clipped action. Every method works on a whole batch of agents at once, as tensors, on the
+device the world was moved to.
 
-Walls are solid axis-aligned rectangles. A step moves along x, then along y; each axis move is
-stopped just short of the first wall face it would cross (and by the arena's edge), so the agent
-slides along walls, never tunnels through a thin wall however large the step, and never ends
-strictly inside a wall or outside the arena.
+Walls and edges follow the public reference implementation of the thesis' worlds ([22];
+REFERENCE_WORLDS.md), which keeps agents from piling up on identical points (kNN distances of 0):
+
+- **arena edge**: the part of a move beyond an edge comes back into the arena, mirrored;
+- **wall**: a move that would end inside a wall instead moves the agent *back* from where it
+  was, against the sign of the move on each axis, by an independent uniform amount in
+  [0, max_action / 2] per axis; if that point is in a wall too, the agent stays where it was.
+
+The reference checks only a move's end point; here a move whose path (the mirrored path, when
+it is reflected off an edge) touches a wall counts as hitting it, so no move tunnels through a
+wall, whatever its size. Walls are closed rectangles: an agent never ends on or inside one.
+
+Randomness: a step consumes ``noise_size`` uniform numbers per agent (the push-back's two, then
+the force's), passed in as ``noise`` or drawn from ``generator``; the rollout draws a whole
+epoch's worth at once, so a run's random stream does not depend on how it is batched.
 """
 
 from __future__ import annotations
@@ -20,7 +31,9 @@ import numpy as np
 import torch
 
 MAX_ACTION = 0.2  # per-axis action bound of every world (thesis 5.1)
-WALL_GAP = 1e-4  # how far short of a wall face a blocked move stops
+PUSH_BACK_NOISE = 2  # uniforms per agent and step for the push-back (one per axis)
+START_CANDIDATES = 16  # start positions drawn per agent; the first free one is taken
+FAR_AWAY = 1e9  # where the padding rectangles of the wall table lie
 
 
 @dataclass(frozen=True)
@@ -44,13 +57,15 @@ class NavigationWorld:
     """A class of 2-D navigation configurations, stepped in batches.
 
     Subclasses set ``name``, ``arena``, ``start``, ``config_names``, ``config_probs`` and
-    ``walls`` (one list of :class:`Box` per configuration) and implement :meth:`force`.
+    ``walls`` (one tuple of :class:`Box` per configuration), and, for a force, ``force_noise``
+    (uniforms it needs per agent and step) and :meth:`force`.
     """
 
     name: str = "world"
     state_dim: int = 2
     action_dim: int = 2
     max_action: float = MAX_ACTION
+    force_noise: int = 0
     arena: Box
     start: Box
     config_names: tuple[str, ...]
@@ -67,22 +82,53 @@ class NavigationWorld:
     def n_configs(self) -> int:
         return len(self.config_probs)
 
+    @property
+    def noise_size(self) -> int:
+        """Uniform numbers one agent consumes per step."""
+        return PUSH_BACK_NOISE + self.force_noise
+
+    @property
+    def push_back(self) -> float:
+        """Largest push-back per axis after hitting a wall (reference: max_action / 2)."""
+        return self.max_action / 2
+
     def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> NavigationWorld:
         self.device, self.dtype = torch.device(device), dtype
         self._build_tensors()
         return self
 
     def _build_tensors(self) -> None:
+        kw = dict(device=self.device, dtype=self.dtype)
         most = max(1, max(len(w) for w in self.walls))
-        # Padding rectangles are empty (x0 > x1), so no agent is ever inside their band.
-        table = np.tile(np.array([1.0, 1.0, -1.0, -1.0]) * 1e9, (self.n_configs, most, 1))
+        # Padding rectangles lie far outside the arena, beyond the reach of any move.
+        table = np.full((self.n_configs, most, 4), FAR_AWAY)
         for c, boxes in enumerate(self.walls):
             for i, b in enumerate(boxes):
                 table[c, i] = (b.x0, b.y0, b.x1, b.y1)
-        self._walls = torch.tensor(table, device=self.device, dtype=self.dtype)  # (C, W, 4)
+        self._walls = torch.tensor(table, **kw)  # (C, W, 4)
+        self._obstacles = torch.tensor(_with_mirror_images(table, self.arena), **kw)  # (C, 9W, 4)
         # Configurations that share their walls (slope, corridor) need no per-agent gather.
-        self._shared_walls = self._walls[:1] if len(set(self.walls)) == 1 else None  # (1, W, 4)
+        shared = len(set(self.walls)) == 1
+        self._shared_obstacles = self._obstacles[:1] if shared else None
         self._probs = torch.tensor(self.config_probs, device=self.device, dtype=torch.float64)
+        self._arena_lo = torch.tensor([self.arena.x0, self.arena.y0], **kw)
+        self._arena_hi = torch.tensor([self.arena.x1, self.arena.y1], **kw)
+        self._start_lo = torch.tensor([self.start.x0, self.start.y0], **kw)
+        self._start_hi = torch.tensor([self.start.x1, self.start.y1], **kw)
+        self._start_fallback = torch.tensor(
+            [self._free_start_point(c) for c in range(self.n_configs)], **kw
+        )
+
+    def _free_start_point(self, config: int) -> tuple[float, float]:
+        """A free point of the start area, for the (astronomically rare) agent whose candidates
+        all fell in a wall."""
+        s = self.start
+        for gx in np.linspace(0.05, 0.95, 19):
+            for gy in np.linspace(0.05, 0.95, 19):
+                x, y = s.x0 + gx * (s.x1 - s.x0), s.y0 + gy * (s.y1 - s.y0)
+                if not any(b.contains(x, y) for b in self.walls[config]):
+                    return (x, y)
+        raise ValueError(f"{self.name} config {config}: the start area lies inside walls")
 
     # ------------------------------------------------------------------ dynamics
     def sample_configs(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -92,19 +138,37 @@ class NavigationWorld:
     def reset(
         self, configs: torch.Tensor, generator: torch.Generator | None = None
     ) -> torch.Tensor:
-        """Initial positions, uniform in the start box. configs (N,) -> (N, 2)."""
+        """Initial positions, uniform over the free part of the start area. configs (N,) -> (N, 2)
+
+        A fixed number of candidates per agent (the first free one is taken), so the random
+        stream advances by the same amount whatever the walls.
+        """
+        n = configs.shape[0]
         u = torch.rand(
-            configs.shape[0], 2, device=self.device, dtype=self.dtype, generator=generator
+            n, START_CANDIDATES, 2, device=self.device, dtype=self.dtype, generator=generator
         )
-        lo = torch.tensor([self.start.x0, self.start.y0], device=self.device, dtype=self.dtype)
-        hi = torch.tensor([self.start.x1, self.start.y1], device=self.device, dtype=self.dtype)
-        return lo + u * (hi - lo)
+        candidates = self._start_lo + u * (self._start_hi - self._start_lo)  # (N, K, 2)
+        free = ~self.inside_wall(
+            candidates.reshape(-1, 2), configs.repeat_interleave(START_CANDIDATES)
+        ).view(n, START_CANDIDATES)
+        first = free.to(torch.uint8).argmax(dim=1)
+        chosen = candidates[torch.arange(n, device=self.device), first]
+        return torch.where(free.any(dim=1, keepdim=True), chosen, self._start_fallback[configs])
 
     def force(
-        self, positions: torch.Tensor, configs: torch.Tensor, generator: torch.Generator | None
+        self, positions: torch.Tensor, configs: torch.Tensor, noise: torch.Tensor
     ) -> torch.Tensor:
-        """External displacement (slope, wind) at each position. (N, 2) -> (N, 2)."""
+        """External displacement (slope, wind) at each position, added to the clipped action.
+
+        positions (N, 2), configs (N,), noise (N, force_noise) uniform in [0, 1) -> (N, 2).
+        """
         return torch.zeros_like(positions)
+
+    def draw_noise(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The uniforms one step of n agents consumes. (n, noise_size)"""
+        return torch.rand(
+            n, self.noise_size, device=self.device, dtype=self.dtype, generator=generator
+        )
 
     def step(
         self,
@@ -112,40 +176,74 @@ class NavigationWorld:
         actions: torch.Tensor,
         configs: torch.Tensor,
         generator: torch.Generator | None = None,
+        *,
+        noise: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Next positions: clipped action plus the configuration's force, stopped by walls.
+        """Next positions: clipped action plus the configuration's force, off edges and walls.
 
-        positions (N, 2), actions (N, 2), configs (N,) -> (N, 2).
+        positions (N, 2), actions (N, 2), configs (N,), noise (N, noise_size) -> (N, 2).
         """
+        if noise is None:
+            noise = self.draw_noise(positions.shape[0], generator)
         displacement = actions.clamp(-self.max_action, self.max_action)
-        displacement = displacement + self.force(positions, configs, generator)
-        return self.move(positions, displacement, configs)
+        displacement = displacement + self.force(positions, configs, noise[:, PUSH_BACK_NOISE:])
+        return self.move(positions, displacement, configs, noise[:, :PUSH_BACK_NOISE])
 
     def move(
-        self, positions: torch.Tensor, displacement: torch.Tensor, configs: torch.Tensor
+        self,
+        positions: torch.Tensor,
+        displacement: torch.Tensor,
+        configs: torch.Tensor,
+        push_noise: torch.Tensor,
     ) -> torch.Tensor:
-        if self._shared_walls is None:
-            walls = self._walls.index_select(0, configs)  # (N, W, 4)
+        """Apply a displacement with the reference's edge reflection and wall push-back.
+
+        positions (N, 2), displacement (N, 2), configs (N,), push_noise (N, 2) in [0, 1).
+        """
+        if self._shared_obstacles is None:
+            obstacles = self._obstacles.index_select(0, configs)  # (N, 9W, 4)
         else:
-            walls = self._shared_walls  # (1, W, 4)
-        x, y = positions[:, 0], positions[:, 1]
-        x = _slide(
-            x, y, displacement[:, 0], walls[..., 0], walls[..., 2], walls[..., 1], walls[..., 3]
-        )
-        x = x.clamp(self.arena.x0, self.arena.x1)
-        y = _slide(
-            y, x, displacement[:, 1], walls[..., 1], walls[..., 3], walls[..., 0], walls[..., 2]
-        )
-        y = y.clamp(self.arena.y0, self.arena.y1)
-        return torch.stack((x, y), dim=-1)
+            obstacles = self._shared_obstacles  # (1, 9W, 4)
+        moved = self._reflect(positions + displacement)
+        hit = self._path_blocked(positions, displacement, obstacles)
+        back = -torch.sign(displacement) * push_noise * self.push_back
+        pushed = self._reflect(positions + back)
+        stuck = self._path_blocked(positions, back, obstacles)
+        fallback = torch.where(stuck[:, None], positions, pushed)
+        return torch.where(hit[:, None], fallback, moved)
+
+    def _reflect(self, positions: torch.Tensor) -> torch.Tensor:
+        """Mirror the part of a move beyond an arena edge back inside. (N, 2) -> (N, 2)"""
+        lo, hi = self._arena_lo, self._arena_hi
+        span = hi - lo
+        folded = torch.remainder(positions - lo, 2 * span)
+        folded = lo + torch.where(folded > span, 2 * span - folded, folded)
+        inside = (positions >= lo) & (positions <= hi)
+        return torch.where(inside, positions, folded)
+
+    def _path_blocked(
+        self, positions: torch.Tensor, displacement: torch.Tensor, obstacles: torch.Tensor
+    ) -> torch.Tensor:
+        """True where the move touches a wall. (N,)
+
+        The path reflected off the edges is the straight segment ``positions + t * displacement``
+        (t in [0, 1]) among the walls' mirror images, so one slab test covers it. A move longer
+        than the arena on an axis would be reflected more than once: it counts as blocked.
+        """
+        too_long = (displacement.abs() > self._arena_hi - self._arena_lo).any(dim=-1)
+        return _segment_touches_box(positions, displacement, obstacles) | too_long
 
     # ------------------------------------------------------------------ geometry
     def inside_wall(self, positions: torch.Tensor, configs: torch.Tensor) -> torch.Tensor:
-        """True where a position lies strictly inside one of its configuration's walls. (N,)"""
+        """True where a position lies in (or on the boundary of) one of its configuration's
+        walls. positions (N, 2), configs (N,) -> (N,)"""
         walls = self._walls[configs]
         x, y = positions[:, :1], positions[:, 1:]
         inside = (
-            (x > walls[..., 0]) & (x < walls[..., 2]) & (y > walls[..., 1]) & (y < walls[..., 3])
+            (x >= walls[..., 0])
+            & (x <= walls[..., 2])
+            & (y >= walls[..., 1])
+            & (y <= walls[..., 3])
         )
         return inside.any(dim=-1)
 
@@ -155,7 +253,7 @@ class NavigationWorld:
         return (x >= a.x0) & (x <= a.x1) & (y >= a.y0) & (y <= a.y1)
 
     def free_mask(self, config: int, resolution: int = 1000) -> np.ndarray:
-        """Raster of free space, (resolution, resolution) bool, row 0 at y0 (bottom)."""
+        """Raster of free space, (resolution, resolution) bool, row 0 at y0 (bottom, south)."""
         a = self.arena
         xs = np.linspace(a.x0, a.x1, resolution + 1)
         ys = np.linspace(a.y0, a.y1, resolution + 1)
@@ -178,53 +276,47 @@ class NavigationWorld:
         return float(mask.mean()) * self.arena.area
 
 
-def _slide(
-    along: torch.Tensor,
-    across: torch.Tensor,
-    delta: torch.Tensor,
-    lo: torch.Tensor,
-    hi: torch.Tensor,
-    band_lo: torch.Tensor,
-    band_hi: torch.Tensor,
-) -> torch.Tensor:
-    """Move ``along`` one axis by ``delta``, stopping short of the first wall face crossed.
+def _with_mirror_images(walls: np.ndarray, arena: Box) -> np.ndarray:
+    """Each wall and its mirror images across the arena edges and corners: (C, W, 4) -> (C, 9W, 4).
 
-    along, across, delta (N,); lo, hi, band_lo, band_hi (N, W) or (1, W): each wall spans [lo, hi]
-    on the moving axis and (band_lo, band_hi) on the other one.
+    A path reflected off an edge touches a wall exactly when its unreflected straight line
+    touches that wall's mirror image across the edge.
     """
-    target = (along + delta)[:, None]
-    start = along[:, None]
-    # Closed band: a path along the seam of two touching walls, or along a wall's corner,
-    # is blocked too (conservative; an agent never slides *along* a face, it stops WALL_GAP short).
-    in_band = (across[:, None] >= band_lo) & (across[:, None] <= band_hi)
-    inf = torch.full_like(lo, float("inf"))
-    # Moving forwards: a wall whose near face lies between start and target stops us.
-    hit_fwd = in_band & (lo >= start) & (lo < target)
-    stop_fwd = torch.where(hit_fwd, lo - WALL_GAP, inf).amin(dim=-1)
-    # Moving backwards: the far face of a wall behind us.
-    hit_back = in_band & (hi <= start) & (hi > target)
-    stop_back = torch.where(hit_back, hi + WALL_GAP, -inf).amax(dim=-1)
-    moved = along + delta
-    moved = torch.where(delta > 0, torch.minimum(moved, stop_fwd), moved)
-    moved = torch.where(delta < 0, torch.maximum(moved, stop_back), moved)
-    return moved
+    x0, y0, x1, y1 = (walls[..., i] for i in range(4))
+    xs = [(x0, x1), (2 * arena.x0 - x1, 2 * arena.x0 - x0), (2 * arena.x1 - x1, 2 * arena.x1 - x0)]
+    ys = [(y0, y1), (2 * arena.y0 - y1, 2 * arena.y0 - y0), (2 * arena.y1 - y1, 2 * arena.y1 - y0)]
+    padding = x0 == FAR_AWAY  # stays far away
+    images = []
+    for ax0, ax1 in xs:
+        for ay0, ay1 in ys:
+            box = np.stack([ax0, ay0, ax1, ay1], axis=-1)
+            box[padding] = FAR_AWAY
+            images.append(box)
+    return np.concatenate(images, axis=1)
 
 
-def truncated_normal(
-    mean: float,
-    std: float,
-    low: float,
-    high: float,
-    shape: tuple[int, ...],
-    *,
-    device: torch.device,
-    dtype: torch.dtype,
-    generator: torch.Generator | None = None,
+def _segment_touches_box(
+    start: torch.Tensor, delta: torch.Tensor, boxes: torch.Tensor
 ) -> torch.Tensor:
-    """Samples of N(mean, std^2) truncated to [low, high], by inverting the CDF."""
-    normal = torch.distributions.Normal(torch.tensor(mean, dtype=torch.float64), std)
-    cdf_lo = float(normal.cdf(torch.tensor(low, dtype=torch.float64)))
-    cdf_hi = float(normal.cdf(torch.tensor(high, dtype=torch.float64)))
-    u = torch.rand(shape, device=device, dtype=torch.float64, generator=generator)
-    z = torch.special.ndtri(cdf_lo + u * (cdf_hi - cdf_lo))
-    return (mean + std * z).clamp(low, high).to(dtype)
+    """Slab test: does the segment start + t * delta, t in [0, 1], touch a closed box?
+
+    start, delta (N, 2); boxes (N, K, 4) or (1, K, 4) as (x0, y0, x1, y1). -> (N,) bool
+    """
+    enter = torch.zeros((), dtype=start.dtype, device=start.device)
+    leave = torch.ones((), dtype=start.dtype, device=start.device)
+    for axis in (0, 1):
+        p = start[:, axis : axis + 1]
+        d = delta[:, axis : axis + 1]
+        lo, hi = boxes[..., axis], boxes[..., axis + 2]
+        moving = d != 0
+        safe = torch.where(moving, d, torch.ones_like(d))
+        t_lo, t_hi = (lo - p) / safe, (hi - p) / safe
+        first, last = torch.minimum(t_lo, t_hi), torch.maximum(t_lo, t_hi)
+        # Not moving on this axis: the segment is inside the slab for every t, or never.
+        within = (p >= lo) & (p <= hi)
+        inf = torch.full_like(first, float("inf"))
+        first = torch.where(moving, first, torch.where(within, -inf, inf))
+        last = torch.where(moving, last, torch.where(within, inf, -inf))
+        enter = torch.maximum(enter, first)
+        leave = torch.minimum(leave, last)
+    return (enter <= leave).any(dim=-1)

@@ -6,9 +6,9 @@ Config 0 (clockwise wind), one character per 0.5 x 1 cell, top row y in [5, 6]; 
 
            x = -6                   x = 6
            +------------------------+
-           |//////>>>\\##//>>>\\\\\\|  y in [3, 6]: the ring's top band, cut by wall B (##)
-           |//////>>>\\##//>>>\\\\\\|
-           |//////>>>\\##//>>>\\\\\\|
+           |//////>>>\\v##^/>>>\\\\\\|  y in [3, 6]: the ring's top band, cut by wall B (##)
+           |//////>>>\\v##^/>>>\\\\\\|
+           |//////>>>\\v##^/>>>\\\\\\|
            |^^^^^^###vv##^^###vvvvvv|  y in [2, 3]: stubs WS (vv) and ES (^^)
            |^^^^^^##........##vvvvvv|  y in [-2, 2]: the room; start box [-0.5, 0.5]^2
            |^^^^^^##........##vvvvvv|
@@ -35,10 +35,13 @@ action) added to the clipped action, in the corridor only, never in the room. It
 field is a set of rectangles tiling the corridor, each with a unit direction along the path:
 clockwise in config 0 (``clockwise``: up ES, east along the top, down the east band, west along
 the bottom, up the west band, east along the top, down WS) and its exact negation in config 1
-(``counterclockwise``). The corner squares of the ring (NW, NE, SE, SW) and the junction
-columns above the stubs (WJ, EJ, x in the stub's range, y in [3, 6]) carry the normalised sum of
-the incoming and outgoing directions, so both the field and its negation turn the corner.
-p_M = (0.5, 0.5).
+(``counterclockwise``). The corner squares of the ring (NW, NE, SE, SW) carry the normalised
+sum of the incoming and outgoing directions, so both the field and its negation turn the corner
+(pushing agents into the arena's edges, which reflect them). The junction columns above the
+stubs (WJ, EJ: x in the stub's range, y in [3, 6]) turn the path in two halves: the half beside
+wall B blows along the stub, parallel to the wall, the outer half diagonally. Wind never points
+into a wall: a wall's push-back reverses both axes of the move, so an agent blown into wall B
+would bounce off it forever instead of descending into the stub. p_M = (0.5, 0.5).
 
 Consequence: with wind 0.4 one entrance is downwind in each configuration (WS in clockwise, ES in
 counterclockwise): the wind blows into the room there, and an agent pushing in at full force
@@ -77,8 +80,10 @@ _D = 1.0 / math.sqrt(2.0)
 CLOCKWISE_FIELD: tuple[tuple[Box, tuple[float, float]], ...] = (
     (WEST_STUB, (0.0, -1.0)),  # down into the room
     (EAST_STUB, (0.0, 1.0)),  # up out of the room
-    (Box(-1.5, 3.0, -0.5, 6.0), (_D, -_D)),  # WJ: east, then down WS
-    (Box(0.5, 3.0, 1.5, 6.0), (_D, _D)),  # EJ: up from ES, then east
+    (Box(-1.5, 3.0, -1.0, 6.0), (_D, -_D)),  # WJ, west half: east and down, towards WS
+    (Box(-1.0, 3.0, -0.5, 6.0), (0.0, -1.0)),  # WJ, east half: down along wall B into WS
+    (Box(0.5, 3.0, 1.0, 6.0), (0.0, 1.0)),  # EJ, west half: up along wall B from ES
+    (Box(1.0, 3.0, 1.5, 6.0), (_D, _D)),  # EJ, east half: up and east, into the top band
     (Box(-3.0, 3.0, -1.5, 6.0), (1.0, 0.0)),  # top band, west part
     (Box(1.5, 3.0, 3.0, 6.0), (1.0, 0.0)),  # top band, east part
     (Box(3.0, 3.0, 6.0, 6.0), (_D, -_D)),  # NE corner
@@ -135,6 +140,6 @@ class CorridorWorld(NavigationWorld):
         return torch.where(in_corridor, direction, torch.zeros_like(direction))
 
     def force(
-        self, positions: torch.Tensor, configs: torch.Tensor, generator: torch.Generator | None
+        self, positions: torch.Tensor, configs: torch.Tensor, noise: torch.Tensor
     ) -> torch.Tensor:
         return self.wind * self.wind_direction(positions, configs)

@@ -80,8 +80,10 @@ class CueCorridorWorld(NavigationWorld):
         actions: torch.Tensor,
         configs: torch.Tensor,
         generator: torch.Generator | None = None,
+        *,
+        noise: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """As the base world in the corridor; from a pad, to the origin whatever the action."""
-        moved = super().step(positions, actions, configs, generator)
+        moved = super().step(positions, actions, configs, generator, noise=noise)
         on_pad = (positions[:, 1].abs() > PAD_EDGE).unsqueeze(-1)
         return torch.where(on_pad, torch.zeros_like(moved), moved)

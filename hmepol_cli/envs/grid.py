@@ -1,42 +1,59 @@
 """Gridworlds on [-1, 1]^2 whose walls are laid out as 10 x 10 blocks, with a slope force.
 
 Shared by the slope world (one layout, two slopes) and multigrid (ten layouts, ten slopes).
+Maps are read as printed, north at the top (REFERENCE_WORLDS.md): the first row of a layout is
+the northern edge y in [0.8, 1], the first column the western edge x in [-1, -0.8]. The start
+area is the 0.5 x 0.5 square in the north-west corner.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
-from hmepol_cli.envs.base import Box, NavigationWorld
+from hmepol_cli.envs.base import MAX_ACTION, Box, NavigationWorld
 
 ARENA = Box(-1.0, -1.0, 1.0, 1.0)
-START = Box(-1.0, -1.0, -0.5, -0.5)  # bottom-left room (thesis Fig. 5.1)
-SLOPE_STD = 0.01  # public reference implementation of [22]
-SLOPE_RANGE = (0.0, 0.2)  # the slope's magnitude is truncated to this range (thesis 5.1)
+START = Box(-1.0, 0.5, -0.5, 1.0)  # north-west corner (REFERENCE_WORLDS.md)
+NORTHERN_HALF = Box(-1.0, 0.0, 1.0, 1.0)  # the half that holds the start room
+SLOPE_STD = MAX_ACTION / 20  # 0.01: sd of every slope's magnitude (reference)
+
+NORTH, SOUTH, EAST = (0.0, 1.0), (0.0, -1.0), (1.0, 0.0)
+# South-east: the magnitude is added to both axes, not normalised (reference).
+SOUTH_EAST = (1.0, -1.0)
 
 
 @dataclass(frozen=True)
 class SlopeSpec:
-    """A stochastic force of magnitude ~ N(mean, 0.01) truncated to [0, 0.2], along direction.
+    """A force ``magnitude * direction``, magnitude ~ N(mean, 0.01) truncated to [0, high],
+    drawn afresh for every agent and step; only inside ``region`` (None: the whole arena).
 
-    ``region`` limits it to a part of the arena (None: everywhere).
+    A magnitude of mean 0 is no slope at all.
     """
 
     direction: tuple[float, float] = (0.0, 0.0)
     mean: float = 0.0
+    high: float = 0.0
     region: Box | None = None
+
+    @classmethod
+    def centred(
+        cls, direction: tuple[float, float], mean: float, region: Box | None = None
+    ) -> SlopeSpec:
+        """Truncated to [0, 2 * mean], symmetric about the mean, as every slope of [22] is."""
+        return cls(direction, mean, 2 * mean, region)
 
 
 def walls_from_ascii(rows: list[str], arena: Box = ARENA) -> tuple[Box, ...]:
-    """Rectangles for the '#' blocks of an ASCII layout (first row = top), one per run of a row."""
+    """Rectangles for the '#' blocks of an ASCII layout (first row = north), one per run of a row
+    merged with identical runs of the rows below it."""
     n_rows, n_cols = len(rows), len(rows[0])
     if any(len(r) != n_cols for r in rows):
         raise ValueError("every row of a layout must have the same length")
     w = (arena.x1 - arena.x0) / n_cols
     h = (arena.y1 - arena.y0) / n_rows
-    # Runs of '#' per row, then identical runs of consecutive rows merged into one rectangle.
     open_runs: dict[tuple[int, int], int] = {}  # (first col, end col) -> first row
     spans: list[tuple[int, int, int, int]] = []  # (first row, end row, first col, end col)
     for i, row in enumerate([*rows, "." * n_cols]):
@@ -54,8 +71,17 @@ def walls_from_ascii(rows: list[str], arena: Box = ARENA) -> tuple[Box, ...]:
                 spans.append((open_runs.pop(run), i, *run))
         for run in runs:
             open_runs.setdefault(run, i)
+
+    def edge(value: float) -> float:  # -1 + 4 * 0.2 is -0.19999999999999996: say -0.2
+        return round(value, 12)
+
     return tuple(
-        Box(arena.x0 + c0 * w, arena.y1 - r1 * h, arena.x0 + c1 * w, arena.y1 - r0 * h)
+        Box(
+            edge(arena.x0 + c0 * w),
+            edge(arena.y1 - r1 * h),
+            edge(arena.x0 + c1 * w),
+            edge(arena.y1 - r0 * h),
+        )
         for r0, r1, c0, c1 in sorted(spans)
     )
 
@@ -80,6 +106,7 @@ class GridWorld(NavigationWorld):
 
     arena = ARENA
     start = START
+    force_noise = 1  # one uniform per agent and step: the slope's magnitude
 
     def __init__(
         self,
@@ -99,30 +126,53 @@ class GridWorld(NavigationWorld):
 
     def _build_tensors(self) -> None:
         super()._build_tensors()
-        kw = dict(device=self.device, dtype=self.dtype)
+        kw = dict(device=self.device, dtype=torch.float64)
         self._slope_dir = torch.tensor([s.direction for s in self.slopes], **kw)  # (C, 2)
-        self._slope_mean = torch.tensor([s.mean for s in self.slopes], **kw)  # (C,)
+        self._slope_on = torch.tensor([s.mean > 0 for s in self.slopes], device=self.device)
+        # The truncation points as quantiles of N(mean, sd): inverse-CDF sampling is exact.
+        mean = torch.tensor([s.mean for s in self.slopes], **kw)
+        high = torch.tensor([s.high for s in self.slopes], **kw)
+        normal = torch.distributions.Normal(0.0, 1.0)
+        self._slope_mean = mean
+        self._slope_cdf_lo = normal.cdf((0.0 - mean) / SLOPE_STD)  # (C,)
+        self._slope_cdf_hi = normal.cdf((high - mean) / SLOPE_STD)
+        self._slope_high = high
         big = 1e9
         regions = [s.region or Box(-big, -big, big, big) for s in self.slopes]
-        self._slope_region = torch.tensor([(r.x0, r.y0, r.x1, r.y1) for r in regions], **kw)
+        self._slope_region = torch.tensor(
+            [(r.x0, r.y0, r.x1, r.y1) for r in regions], device=self.device, dtype=self.dtype
+        )
+
+    def slope_magnitude(self, configs: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """N(mean, 0.01) truncated to [0, high] of each agent's configuration, by inverting the
+        CDF at a uniform draw. configs (N,), noise (N,) in [0, 1) -> (N,) float64"""
+        lo, hi = self._slope_cdf_lo[configs], self._slope_cdf_hi[configs]
+        z = torch.special.ndtri(lo + noise.double() * (hi - lo))
+        magnitude = self._slope_mean[configs] + SLOPE_STD * z
+        return magnitude.clamp(torch.zeros_like(magnitude), self._slope_high[configs])
 
     def force(
-        self, positions: torch.Tensor, configs: torch.Tensor, generator: torch.Generator | None
+        self, positions: torch.Tensor, configs: torch.Tensor, noise: torch.Tensor
     ) -> torch.Tensor:
-        n = positions.shape[0]
-        # Standard truncated normal scaled per configuration: magnitude ~ N(mean, std) in range.
-        # Sampled once per agent so that every configuration shares one random stream.
-        z = torch.randn(n, device=self.device, dtype=torch.float64, generator=generator)
-        mean = self._slope_mean[configs].double()
-        lo = (SLOPE_RANGE[0] - mean) / SLOPE_STD
-        hi = (SLOPE_RANGE[1] - mean) / SLOPE_STD
-        # Truncation at >= 7 standard deviations: resampling would change nothing measurable,
-        # clamping keeps the support exact.
-        magnitude = (mean + SLOPE_STD * z.clamp(lo, hi)).to(self.dtype)
+        magnitude = self.slope_magnitude(configs, noise[:, 0])
         region = self._slope_region[configs]
         x, y = positions[:, 0], positions[:, 1]
-        inside = (
-            (x >= region[:, 0]) & (x <= region[:, 2]) & (y >= region[:, 1]) & (y <= region[:, 3])
-        )
-        magnitude = torch.where(inside & (mean > 0), magnitude, torch.zeros_like(magnitude))
-        return magnitude[:, None] * self._slope_dir[configs]
+        inside = (x >= region[:, 0]) & (x <= region[:, 2]) & (y >= region[:, 1])
+        inside &= (y <= region[:, 3]) & self._slope_on[configs]
+        magnitude = torch.where(inside, magnitude, torch.zeros_like(magnitude))
+        return (magnitude[:, None] * self._slope_dir[configs]).to(positions.dtype)
+
+
+def compass(direction: tuple[float, float]) -> str:
+    names = (
+        "east",
+        "north-east",
+        "north",
+        "north-west",
+        "west",
+        "south-west",
+        "south",
+        "south-east",
+    )
+    angle = math.degrees(math.atan2(direction[1], direction[0])) % 360
+    return names[round(angle / 45) % 8]

@@ -1,174 +1,174 @@
-"""MultiGrid (thesis 5.3, Fig. 5.11): ten gridworlds on [-1, 1]^2 with different walls and slopes.
+"""MultiGrid (thesis 5.3, Fig. 5.11): the ten gridworlds of [22] on [-1, 1]^2, p_M uniform.
 
-Every layout is 10 x 10 blocks of 0.2 (``#`` wall, ``.`` free, first row at the top), keeps the
-start box [-1, -0.5]^2 (the bottom-left 3 x 3 blocks) free, and has every free block reachable
-from it (4-neighbour moves; ``tests/test_envs.py`` checks both).
+Layouts and slopes as the public reference implementation has them (REFERENCE_WORLDS.md), maps
+printed north at the top (``#`` wall block of 0.2 x 0.2, ``.`` free). Slopes are added to the
+clipped action every step, with magnitudes drawn from truncated normals of sd 0.01:
 
-Configurations, drawn uniformly (p_M = 1/10 each; the thesis does not give p_M):
+====  =====================  ===========  ===========  ===============================
+ #    layout                 slope        where        magnitude
+====  =====================  ===========  ===========  ===============================
+ 0    four rooms (slope)     north        north half   N(0.077, 0.01) on [0, 0.154]
+ 1    bars                   east         everywhere   N(0.0625, 0.01) on [0, 0.125]
+ 2    split halls            south        everywhere   same
+ 3    terraces               south-east   everywhere   same, added to both axes
+ 4    blocks                 none
+ 5    narrow passages        east         everywhere   same
+ 6    two rooms              south        everywhere   same
+ 7    two halls, one door    none
+ 8    stepped maze           none
+ 9    ring                   east         everywhere   same
+====  =====================  ===========  ===========  ===============================
 
-====  ==================  ==========  ==============================================
- #    name                slope       layout
-====  ==================  ==========  ==============================================
- 0    four_rooms_north    north       the slope world's four rooms (thesis Fig. 5.1)
- 1    zigzag_south        south       one corridor that zigzags up through the arena
- 2    pillars_south       south       open floor with four pillars
- 3    spiral_east         east        a spiral corridor inside an outer ring
- 4    serpentine_east     east        walls hanging alternately from top and bottom
- 5    nine_rooms_east     east        a 3 x 3 grid of rooms joined by doors
- 6    blocks_southeast    south-east  three blocks and a bar around open lanes
- 7    maze                none        a maze of one-block corridors
- 8    halls               none        three long halls joined by narrow doors
- 9    open                none        an open square with one central block
-====  ==================  ==========  ==============================================
+Config 0 is the adversarial one: its slope pushes agents into the start room's outer wall. The
+reference draws its magnitudes as fractions of the action bound 0.2: mean 0.2 / 2.6 (the thesis
+rounds it to 0.077) up to 0.2 / 1.3, and mean 0.2 / 3.2 = 0.0625 up to 0.2 / 1.6.
 
-Slopes: config 0 is the slope world's north configuration with a reduced slope: magnitude
-~ N(0.077, 0.01) truncated to [0, 0.2], acting only in the bottom half of the arena (y <= 0,
-exactly as the slope world). The other slopes have magnitude ~ N(0.1, 0.01) truncated to
-[0, 0.2] and act on the whole arena; the south-east direction is normalised, (1, -1) / sqrt(2).
+Parts of the start area lie in a wall in configs 3, 4, 5 and 9; agents start uniformly in its
+free part (the reference would start some inside the wall).
 """
 
 from __future__ import annotations
 
-import math
+from hmepol_cli.envs.base import MAX_ACTION
+from hmepol_cli.envs.grid import (
+    EAST,
+    FOUR_ROOMS,
+    NORTH,
+    NORTHERN_HALF,
+    SOUTH,
+    SOUTH_EAST,
+    GridWorld,
+    SlopeSpec,
+)
 
-from hmepol_cli.envs.grid import FOUR_ROOMS, GridWorld, SlopeSpec
-from hmepol_cli.envs.slope import SLOPE_REGION
+ADVERSARIAL_MEAN = MAX_ACTION / 2.6  # config 0: 0.0769
+SLOPE_MEAN = MAX_ACTION / 3.2  # every other sloped configuration: 0.0625
 
-NORTH_SLOPE_MEAN = 0.077  # config 0, thesis 5.3
-SLOPE_MEAN = 0.1  # every other sloped configuration
-
-ZIGZAG = [
+BARS = [
+    "......##..",
+    "......##..",
+    "......##..",
+    "##....##..",
+    "##........",
+    "##........",
+    "##........",
+    "##........",
+    "########..",
+    "########..",
+]
+SPLIT_HALLS = [
+    "....##....",
+    "....##....",
+    "....##....",
+    "..........",
+    "....##....",
+    "....##....",
+    "..........",
+    "....##....",
+    "....##....",
+    "....##....",
+]
+TERRACES = [
+    "..........",
     "..........",
     "########..",
-    "..........",
-    "..########",
-    "..........",
-    "######.###",
-    "..........",
-    "..........",
-    "....###...",
-    "..........",
+    "##........",
+    "##........",
+    "######....",
+    "######....",
+    "####......",
+    "####......",
+    "####......",
 ]
-
-PILLARS = [
-    "..........",
-    ".##....##.",
-    ".##....##.",
-    "..........",
-    "....##....",
-    "....##....",
-    "..........",
-    ".......##.",
-    ".......##.",
-    "..........",
-]
-
-SPIRAL = [
-    "..........",
-    ".########.",
-    ".#......#.",
-    ".#.####.#.",
-    ".#.#..#.#.",
-    ".#.#.##.#.",
-    ".#.#....#.",
-    "...######.",
-    "..........",
-    "..........",
-]
-
-SERPENTINE = [
-    "..#...#...",
-    "..#.#.#.#.",
-    "..#.#.#.#.",
-    "..#.#.#.#.",
-    "..#.#.#.#.",
-    "..#.#.#.#.",
-    "....#...#.",
-    "....#...#.",
-    "....#...#.",
-    "....#...#.",
-]
-
-NINE_ROOMS = [
-    "...#..#...",
-    "......#...",
-    "...#......",
-    "#.###.##.#",
-    "...#..#...",
-    "...#......",
-    "#.###.##.#",
-    "...#..#...",
-    "......#...",
-    "...#..#...",
-]
-
 BLOCKS = [
     "..........",
-    ".###..###.",
-    ".###..###.",
-    ".###..###.",
     "..........",
-    "..........",
-    "...#..###.",
-    "...#..###.",
-    "...#..###.",
-    "..........",
-]
-
-MAZE = [
-    "..........",
-    ".####.###.",
-    ".#......#.",
-    ".#.####.#.",
-    "...#..#...",
-    "##.#.##.##",
-    "...#......",
-    "...#.####.",
-    "...#.#....",
-    ".....#..#.",
-]
-
-HALLS = [
-    "..........",
-    "..........",
-    "..........",
-    "#.####.###",
-    "..........",
-    "..........",
-    "########.#",
-    "..........",
-    "..........",
-    "..........",
-]
-
-OPEN = [
-    "..........",
-    "..........",
-    "..........",
+    "#.........",
+    "#.........",
+    "#..####...",
+    "#.........",
     "...####...",
     "...####...",
     "...####...",
     "...####...",
+]
+NARROW_PASSAGES = [
+    "..########",
+    "..########",
+    "..########",
+    "..########",
+    "..........",
+    "..........",
+    "..##...###",
+    "..##...###",
+    "..##...###",
+    "..##...###",
+]
+TWO_ROOMS = [
+    ".......###",
+    ".......###",
+    ".......###",
+    ".......###",
+    "####..####",
+    "####..####",
+    ".......###",
+    ".......###",
+    ".......###",
+    "##########",
+]
+TWO_HALLS = [
+    "..........",
+    "..........",
+    "..........",
+    "#####.####",
+    "#####.####",
+    "#####.####",
+    "..........",
     "..........",
     "..........",
     "..........",
 ]
+STEPPED_MAZE = [
+    "......####",
+    "......####",
+    "........##",
+    "........##",
+    "....##....",
+    "....##....",
+    "##......##",
+    "##......##",
+    "####..####",
+    "####..####",
+]
+RING = [
+    "..........",
+    "..######..",
+    "..######..",
+    "..##..##..",
+    "..........",
+    "..........",
+    "..##..##..",
+    "..######..",
+    "..######..",
+    "..........",
+]
 
-NORTH, SOUTH, EAST = (0.0, 1.0), (0.0, -1.0), (1.0, 0.0)
-SOUTH_EAST = (1.0 / math.sqrt(2.0), -1.0 / math.sqrt(2.0))
 NO_SLOPE = SlopeSpec()
-
 CONFIGS: tuple[tuple[str, list[str], SlopeSpec], ...] = (
-    ("four_rooms_north", FOUR_ROOMS, SlopeSpec(NORTH, NORTH_SLOPE_MEAN, SLOPE_REGION)),
-    ("zigzag_south", ZIGZAG, SlopeSpec(SOUTH, SLOPE_MEAN)),
-    ("pillars_south", PILLARS, SlopeSpec(SOUTH, SLOPE_MEAN)),
-    ("spiral_east", SPIRAL, SlopeSpec(EAST, SLOPE_MEAN)),
-    ("serpentine_east", SERPENTINE, SlopeSpec(EAST, SLOPE_MEAN)),
-    ("nine_rooms_east", NINE_ROOMS, SlopeSpec(EAST, SLOPE_MEAN)),
-    ("blocks_southeast", BLOCKS, SlopeSpec(SOUTH_EAST, SLOPE_MEAN)),
-    ("maze", MAZE, NO_SLOPE),
-    ("halls", HALLS, NO_SLOPE),
-    ("open", OPEN, NO_SLOPE),
+    (
+        "four rooms, north slope",
+        FOUR_ROOMS,
+        SlopeSpec.centred(NORTH, ADVERSARIAL_MEAN, NORTHERN_HALF),
+    ),
+    ("bars, east slope", BARS, SlopeSpec.centred(EAST, SLOPE_MEAN)),
+    ("split halls, south slope", SPLIT_HALLS, SlopeSpec.centred(SOUTH, SLOPE_MEAN)),
+    ("terraces, south-east slope", TERRACES, SlopeSpec.centred(SOUTH_EAST, SLOPE_MEAN)),
+    ("blocks, no slope", BLOCKS, NO_SLOPE),
+    ("narrow passages, east slope", NARROW_PASSAGES, SlopeSpec.centred(EAST, SLOPE_MEAN)),
+    ("two rooms, south slope", TWO_ROOMS, SlopeSpec.centred(SOUTH, SLOPE_MEAN)),
+    ("two halls, no slope", TWO_HALLS, NO_SLOPE),
+    ("stepped maze, no slope", STEPPED_MAZE, NO_SLOPE),
+    ("ring, east slope", RING, SlopeSpec.centred(EAST, SLOPE_MEAN)),
 )
 
 

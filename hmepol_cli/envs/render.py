@@ -18,7 +18,7 @@ from matplotlib.patches import Rectangle
 
 from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.envs.corridor import CorridorWorld
-from hmepol_cli.envs.grid import SLOPE_STD, GridWorld
+from hmepol_cli.envs.grid import SLOPE_STD, GridWorld, compass
 
 WALL_COLOUR = "0.55"
 START_COLOUR = "#f2c500"  # the thesis highlights the start area in yellow
@@ -66,7 +66,7 @@ def draw_world(
                 alpha=0.5,
                 edgecolor=START_COLOUR,
                 linewidth=1.0,
-                zorder=zorder + 0.1,
+                zorder=zorder - 0.1,  # under the walls: only its free part shows
             )
         )
     if force:
@@ -105,17 +105,19 @@ def draw_world(
 
 
 def describe_config(world: NavigationWorld, config: int) -> str:
-    """One line on the force of a configuration, e.g. 'slope south ~ N(0.1, 0.01), y <= 0'."""
+    """One line on the force of a configuration, e.g. 'slope south ~ N(0.1, 0.01), north half'."""
     if isinstance(world, CorridorWorld):
         return f"wind {world.wind:g} in the corridor only" if world.wind > 0 else "no wind"
     if isinstance(world, GridWorld):
         slope = world.slopes[config]
         if slope.mean <= 0:
             return "no slope"
-        text = f"slope {_compass(slope.direction)} ~ N({slope.mean:g}, {SLOPE_STD:g})"
-        r = slope.region
-        if r is not None and r.y1 < world.arena.y1:
-            text += f", y \u2264 {r.y1:g}"
+        text = f"slope {compass(slope.direction)} ~ N({slope.mean:.3g}, {SLOPE_STD:g})"
+        r, a = slope.region, world.arena
+        if r is not None and r.y0 > a.y0 and r.y1 >= a.y1:
+            text += ", north half"
+        elif r is not None and r.y1 < a.y1 and r.y0 <= a.y0:
+            text += ", south half"
         return text
     return ""
 
@@ -133,7 +135,7 @@ def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 
             continue
         draw_world(ax, world, c)
         ax.set_title(
-            f"{c}: {world.config_names[c]}  (p = {world.config_probs[c]:.2g})\n"
+            f"{c}: {world.config_names[c]} (p = {world.config_probs[c]:.2g})\n"
             f"{describe_config(world, c)}",
             fontsize=9.5,
         )
@@ -141,7 +143,7 @@ def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 
     areas = sorted({round(world.free_area(c), 2) for c in range(n)})
     area = f"{areas[0]:.3g}" if len(areas) == 1 else f"{areas[0]:.3g} to {areas[-1]:.3g}"
     fig.suptitle(
-        f"{world.name}: free area {area}; walls grey, start area yellow, force as arrows",
+        f"{world.name}: free area {area}; north up; walls grey, start area yellow, force as arrows",
         fontsize=11,
     )
     fig.tight_layout()
@@ -238,18 +240,3 @@ def _draw_slope_region(ax: Axes, world: GridWorld, config: int, zorder: float) -
             zorder=zorder,
         )
     )
-
-
-def _compass(direction: tuple[float, float]) -> str:
-    names = (
-        "east",
-        "north-east",
-        "north",
-        "north-west",
-        "west",
-        "south-west",
-        "south",
-        "south-east",
-    )
-    angle = math.degrees(math.atan2(direction[1], direction[0])) % 360
-    return names[round(angle / 45) % 8]

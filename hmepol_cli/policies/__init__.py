@@ -12,7 +12,14 @@ def make_policy(cfg, state_dim: int, action_dim: int) -> Policy:
     hidden = list(cfg.hidden)
     # Runs saved before the option existed used the thesis' ReLU encoder output.
     encoder_activation = getattr(cfg, "encoder_activation", "relu")
-    common = dict(state_dim=state_dim, action_dim=action_dim, init_log_std=cfg.init_log_std)
+    common = dict(
+        state_dim=state_dim,
+        action_dim=action_dim,
+        init_log_std=cfg.init_log_std,
+        # Runs saved before these options existed: their weights come from the checkpoint.
+        init_weights=getattr(cfg, "init_weights", "xavier"),
+        init_mean_scale=getattr(cfg, "init_mean_scale", 0.01),
+    )
     if cfg.name == "markov":
         return MarkovPolicy(hidden=hidden, **common)
     if cfg.name == "recursive":

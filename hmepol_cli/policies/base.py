@@ -27,12 +27,7 @@ def mlp(sizes: list[int], out_activation: str | None = None) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def shrink_last_layer(net: nn.Sequential, scale: float = 0.01) -> None:
-    """Start with a near-zero mean action, as Mepol does before training."""
-    last = [m for m in net if isinstance(m, nn.Linear)][-1]
-    with torch.no_grad():
-        last.weight.mul_(scale)
-        last.bias.zero_()
+WEIGHT_INITS = ("xavier", "torch")
 
 
 class Policy(nn.Module):
@@ -40,10 +35,35 @@ class Policy(nn.Module):
 
     history_size: int = 0
 
-    def __init__(self, state_dim: int, action_dim: int, init_log_std: float) -> None:
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        init_log_std: float = -1.5,
+        init_weights: str = "xavier",
+        init_mean_scale: float = 0.01,
+    ) -> None:
         super().__init__()
+        if init_weights not in WEIGHT_INITS:
+            raise ValueError(f"init_weights={init_weights!r}; choose one of {WEIGHT_INITS}")
         self.state_dim, self.action_dim = state_dim, action_dim
         self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
+        self._init_weights, self._init_mean_scale = init_weights, float(init_mean_scale)
+
+    def initialise(self, mean_layer: nn.Linear) -> None:
+        """The reference start (REFERENCE_WORLDS.md): Xavier-uniform weights in every linear
+        layer (biases as torch draws them), and a near-zero mean action: ``mean_layer``, the
+        layer that outputs the mean, scaled by ``init_mean_scale`` with a zero bias. (The
+        reference fits its network to output zero for ~50 supervised steps instead; scaling
+        the last layer gives a near-zero mean for every input, histories included.)
+        Subclasses call this at the end of their constructor."""
+        with torch.no_grad():
+            if self._init_weights == "xavier":
+                for module in self.modules():
+                    if isinstance(module, nn.Linear):
+                        nn.init.xavier_uniform_(module.weight)
+            mean_layer.weight.mul_(self._init_mean_scale)
+            mean_layer.bias.zero_()
 
     # -- to implement ----------------------------------------------------------------------
     def step(
@@ -65,21 +85,14 @@ class Policy(nn.Module):
 
     @torch.no_grad()
     def act(
-        self,
-        states: torch.Tensor,
-        history: torch.Tensor,
-        generator: torch.Generator | None = None,
-        deterministic: bool = False,
+        self, states: torch.Tensor, history: torch.Tensor, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Sample a_t. -> (actions (N, a), log pi(a_t | h_t) (N,), h'_t (N, H))."""
+        """a_t = mean + std * noise, with noise ~ N(0, I) given (None: the mean action).
+
+        -> (actions (N, a), log pi(a_t | h_t) (N,), h'_t (N, H)).
+        """
         mean, next_history = self.step(states, history)
-        if deterministic:
-            actions = mean
-        else:
-            noise = torch.randn(
-                mean.shape, device=mean.device, dtype=mean.dtype, generator=generator
-            )
-            actions = mean + noise * torch.exp(self.log_std)
+        actions = mean if noise is None else mean + noise * torch.exp(self.log_std)
         return actions, self.gaussian_log_prob(mean, actions), next_history
 
     def log_prob(

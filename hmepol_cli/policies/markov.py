@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import torch
 
-from hmepol_cli.policies.base import Policy, mlp, shrink_last_layer
+from hmepol_cli.policies.base import Policy, mlp
 
 
 class MarkovPolicy(Policy):
     history_size = 0
 
-    def __init__(self, state_dim: int, action_dim: int, hidden: list[int], init_log_std: float):
-        super().__init__(state_dim, action_dim, init_log_std)
+    def __init__(self, state_dim: int, action_dim: int, hidden: list[int], **init):
+        super().__init__(state_dim, action_dim, **init)
         self.mean_net = mlp([state_dim, *hidden, action_dim])
-        shrink_last_layer(self.mean_net)
+        self.initialise(self.mean_net[-1])
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor

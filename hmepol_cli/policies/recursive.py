@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from hmepol_cli.policies.base import Policy, mlp, shrink_last_layer
+from hmepol_cli.policies.base import Policy, mlp
 
 
 class RecursivePolicy(Policy):
@@ -25,17 +25,17 @@ class RecursivePolicy(Policy):
         hidden: list[int],
         encoder_hidden: list[int],
         history_size: int,
-        init_log_std: float,
         encoder_activation: str = "relu",
+        **init,
     ):
-        super().__init__(state_dim, action_dim, init_log_std)
+        super().__init__(state_dim, action_dim, **init)
         self.history_size = history_size
         self.encoder = mlp(
             [state_dim + history_size, *encoder_hidden, history_size],
             out_activation=encoder_activation,
         )
         self.head = mlp([history_size, *hidden, action_dim])
-        shrink_last_layer(self.head)
+        self.initialise(self.head[-1])
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor
@@ -51,15 +51,15 @@ class TwoHeadPolicy(Policy):
         action_dim: int,
         hidden: list[int],
         history_size: int,
-        init_log_std: float,
         encoder_activation: str = "relu",
+        **init,
     ):
-        super().__init__(state_dim, action_dim, init_log_std)
+        super().__init__(state_dim, action_dim, **init)
         self.history_size = history_size
         self.trunk = mlp([state_dim + history_size, *hidden], out_activation="relu")
         self.mean_head = nn.Sequential(nn.Linear(hidden[-1], action_dim))
         self.history_head = mlp([hidden[-1], history_size], out_activation=encoder_activation)
-        shrink_last_layer(self.mean_head)
+        self.initialise(self.mean_head[-1])
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor
@@ -75,13 +75,13 @@ class GRUPolicy(Policy):
         action_dim: int,
         hidden: list[int],
         history_size: int,
-        init_log_std: float,
+        **init,
     ):
-        super().__init__(state_dim, action_dim, init_log_std)
+        super().__init__(state_dim, action_dim, **init)
         self.history_size = history_size
         self.cell = nn.GRUCell(state_dim, history_size)
         self.head = mlp([history_size, *hidden, action_dim])
-        shrink_last_layer(self.head)
+        self.initialise(self.head[-1])
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor
@@ -97,14 +97,14 @@ class LSTMPolicy(Policy):
         action_dim: int,
         hidden: list[int],
         history_size: int,
-        init_log_std: float,
+        **init,
     ):
-        super().__init__(state_dim, action_dim, init_log_std)
+        super().__init__(state_dim, action_dim, **init)
         self.cell_size = history_size
         self.history_size = 2 * history_size  # [h, c]
         self.cell = nn.LSTMCell(state_dim, history_size)
         self.head = mlp([history_size, *hidden, action_dim])
-        shrink_last_layer(self.head)
+        self.initialise(self.head[-1])
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor
