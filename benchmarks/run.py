@@ -76,25 +76,26 @@ def thesis_config(env: str, algo: str, overrides: list[str]) -> DictConfig:
 def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> Row:
     trainer = Trainer(thesis_config(env, algo, args.override), work / f"{env}-{algo}")
     a, k = trainer.cfg.algo, trainer.cfg.estimator.k
-    row = Row(env, algo, a.trajectories * a.horizon, forward_flops(trainer.policy))
+    policy, generator = trainer.population.member(0), trainer.members[0].generator
+    row = Row(env, algo, a.trajectories * a.horizon, forward_flops(policy))
 
-    configs = draw_configs(trainer.world, a.trajectories, a.batch_size, trainer.generator)
+    configs = draw_configs(trainer.world, a.trajectories, a.batch_size, generator)[None]
     rollouts = []
 
     def collection() -> None:
         rollouts.append(
-            collect(trainer.world, trainer.policy, configs, a.horizon, trainer.generator)
+            collect(trainer.world, trainer.population, None, configs, a.horizon, [generator])
         )
 
     # The plain loop and the batched collection take turns, so that both see the same load.
     for _ in range(args.repeats):
         plain, row.plain_steps_timed = baseline.steps_per_second(
-            trainer.world, trainer.policy, a.horizon, args.plain_trajectories
+            trainer.world, policy, a.horizon, args.plain_trajectories
         )
         row.plain_steps_per_s = max(row.plain_steps_per_s, plain)
         row.steps_per_s = max(row.steps_per_s, row.particles / best_time(collection, 1))
 
-    particles = estimators.particles_by_batch(rollouts[-1].particles, a.batch_size)
+    particles = estimators.particles_by_batch(rollouts[-1].particles[0], a.batch_size)
     search = estimators.nearest_neighbours
     row.kdtree_s = best_time(lambda: search(particles, k, "kdtree"), args.repeats)
     row.torch_s = best_time(lambda: search(particles, k, "torch"), args.repeats)
@@ -103,7 +104,7 @@ def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> 
     )
 
     layer_before, square_before = layer_matmul_flops(row.particles), matmul_flops()
-    stats = trainer.epoch()
+    (stats,) = trainer.epoch()
     row.layer_matmul_flops = max(layer_before, layer_matmul_flops(row.particles))
     row.square_matmul_flops = max(square_before, matmul_flops())
     row.collect_s, row.neighbours_s = stats.seconds["collect"], stats.seconds["neighbours"]
@@ -128,8 +129,9 @@ def dtype_check(args: argparse.Namespace, work: Path) -> dict:
 
     t64 = trainer("float64")
     a, k = t64.cfg.algo, t64.cfg.estimator.k
-    configs = draw_configs(t64.world, a.trajectories, a.batch_size, t64.generator)
-    r64 = collect(t64.world, t64.policy, configs, a.horizon, t64.generator)
+    generator = t64.members[0].generator
+    configs = draw_configs(t64.world, a.trajectories, a.batch_size, generator)[None]
+    r64 = collect(t64.world, t64.population, None, configs, a.horizon, [generator])
     r32 = dataclasses.replace(
         r64,
         states=r64.states.float(),
@@ -139,15 +141,16 @@ def dtype_check(args: argparse.Namespace, work: Path) -> dict:
     )
     n64, n32 = (
         estimators.nearest_neighbours(
-            estimators.particles_by_batch(r.particles, a.batch_size), k, "kdtree"
+            estimators.particles_by_batch(r.particles[0], a.batch_size), k, "kdtree"
         )
         for r in (r64, r32)
     )
     shared = dataclasses.replace(n64, radius=n64.radius.float())
     h64, h32 = estimators.knn_entropy(n64), estimators.knn_entropy(n32)
-    u64 = t64.trust_region_update(r64, n64)
-    u32 = trainer("float32").trust_region_update(r32, n32)
-    u32_shared = trainer("float32").trust_region_update(r32, shared)
+    first = torch.tensor([0])
+    (u64,) = t64.trust_region_update(first, r64, n64)
+    (u32,) = trainer("float32").trust_region_update(first, r32, n32)
+    (u32_shared,) = trainer("float32").trust_region_update(first, r32, shared)
     o64, o32, o32_shared = (float(u.entropies.mean()) for u in (u64, u32, u32_shared))
     return {
         "setting": f"slope HMepol, {a.trajectories} trajectories x {a.horizon} steps, "

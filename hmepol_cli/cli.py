@@ -123,7 +123,7 @@ def _train(cfg: DictConfig) -> str | None:
     _set_threads(cfg)
     trainer = Trainer(cfg, run_dir)
     if resuming and trainer.restore():
-        print(f"hmepol: resuming {run_dir} at epoch {trainer.start_epoch}")
+        print(f"hmepol: resuming {run_dir} at epoch {trainer.members[0].start_epoch}")
     trainer.train()
     print(f"hmepol: run written to {run_dir}")
     return str(run_dir)

@@ -35,10 +35,13 @@ class AlgoConfig:
     kl_threshold: float = 15.0  # delta, trust region (Algorithm 3.1)
     lr: float = 1e-5
     max_off_iters: int = 30
-    backtrack_tries: int = (
-        10  # learning-rate halvings allowed when the first step leaves the region
-    )
-    backtrack_coeff: float = 2.0
+    # When the first off-policy step already leaves the trust region, the learning rate is
+    # divided by lr_backtrack_factor and the step retried, at most lr_backtrack_tries times.
+    lr_backtrack_tries: int = 10
+    lr_backtrack_factor: float = 2.0
+    # Which likelihoods the trust region's KL (eq. 2.8) is computed from: "gradient", those the
+    # gradient uses (policy.bptt; the thesis), or "exact", recomputed over the whole history.
+    trust_region: str = "gradient"
 
 
 @dataclass
@@ -73,15 +76,27 @@ class EvalConfig:
 
 
 @dataclass
+class AlarmConfig:
+    """Bounds past which a run reports that it diverges (log and epochs.csv)."""
+
+    history_bound: float = 1e3  # largest |h'_t| of an epoch's rollout
+    action_bound: float = 10.0  # largest |a_t| drawn (50x the action bound)
+
+
+@dataclass
 class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     algo: AlgoConfig = field(default_factory=AlgoConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    alarms: AlarmConfig = field(default_factory=AlarmConfig)
     seed: int = 0
     device: str = "cpu"  # cpu | cuda | auto
     dtype: str = "float32"  # float32 | float64
+    # float32 matrix products on a GPU: highest (exact float32) | high (TF32, ~3x faster)
+    matmul_precision: str = "highest"
+    vmap: str = "auto"  # population calls: auto (vmap on cuda, a loop on cpu) | on | off
     epochs: int = 20
     resume: str | None = None
     wind: float = 0.4
@@ -132,6 +147,9 @@ def validate(cfg: DictConfig) -> None:
     _one_of("policy", cfg.policy.name, POLICIES)
     _one_of("device", cfg.device, DEVICES)
     _one_of("dtype", cfg.dtype, DTYPES)
+    _one_of("matmul_precision", cfg.matmul_precision, ("highest", "high", "medium"))
+    _one_of("vmap", cfg.vmap, ("auto", "on", "off"))
+    _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
     _one_of("estimator.neighbours", cfg.estimator.neighbours, NEIGHBOURS)
     if not 0 < cfg.algo.alpha <= 1:
         raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")
@@ -142,8 +160,14 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"{key}={value!r} must be a number >= 0")
     for key in ("trajectories", "horizon", "batch_size", "max_off_iters"):
         _positive(f"algo.{key}", cfg.algo[key])
-    for key in ("kl_threshold", "lr", "backtrack_coeff"):
+    for key in ("kl_threshold", "lr"):
         _positive(f"algo.{key}", cfg.algo[key])
+    if not cfg.algo.lr_backtrack_factor > 1:
+        raise ConfigError(f"algo.lr_backtrack_factor={cfg.algo.lr_backtrack_factor!r} must be > 1")
+    if cfg.algo.lr_backtrack_tries < 0:
+        raise ConfigError(f"algo.lr_backtrack_tries={cfg.algo.lr_backtrack_tries!r} must be >= 0")
+    for key in ("history_bound", "action_bound"):
+        _positive(f"alarms.{key}", cfg.alarms[key])
     if cfg.algo.trajectories % cfg.algo.batch_size:
         raise ConfigError(
             f"algo.trajectories={cfg.algo.trajectories} must be a multiple of "

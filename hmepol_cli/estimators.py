@@ -121,12 +121,17 @@ def log_ball_volume(radius: torch.Tensor, dim: int, eps: float = 1e-10) -> torch
     return log_v.clamp_min(math.log(eps))
 
 
-def floor_share(neighbours: Neighbours, eps: float = 1e-10) -> torch.Tensor:
+def floor_share(
+    neighbours: Neighbours, eps: float = 1e-10, per_batch: bool = False
+) -> torch.Tensor:
     """Share of particles whose ball volume is at the floor eps: where the estimate and its
-    gradient are set by eps rather than by the states (coincident particles). -> ()"""
+    gradient are set by eps rather than by the states (coincident particles).
+
+    -> () over all particles, or (M,) per mini-batch."""
     log_unit = (neighbours.dim / 2) * math.log(math.pi) - math.lgamma(neighbours.dim / 2 + 1)
     log_v = neighbours.dim * torch.log(neighbours.radius.clamp_min(TINY)) + log_unit
-    return (log_v <= math.log(eps)).to(torch.float64).mean()
+    at_floor = (log_v <= math.log(eps)).to(torch.float64)
+    return at_floor.mean(dim=-1) if per_batch else at_floor.mean()
 
 
 def bias_correction(k: int) -> float:

@@ -1,4 +1,4 @@
-"""Fresh rollouts of a trained policy in every configuration, saved as raw data and pictures.
+"""Fresh rollouts of trained policies in every configuration, saved as raw data and pictures.
 
 ``eval/<name>.npz`` holds ``positions_c{c}``: (n, T + 1, 2) float32 positions of n trajectories in
 configuration c. The report draws heatmaps and trajectory plots from these files, so it never
@@ -8,6 +8,7 @@ has to run a policy itself.
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -15,24 +16,28 @@ import torch
 
 from hmepol_cli.checkpoint import atomic_write_bytes
 from hmepol_cli.envs.base import NavigationWorld
-from hmepol_cli.policies.base import Policy
+from hmepol_cli.population import PolicyPopulation
 from hmepol_cli.report.plots import save_run_plots
 from hmepol_cli.rollout import collect
 
 
 def rollout_positions(
     world: NavigationWorld,
-    policy: Policy,
+    population: PolicyPopulation,
     trajectories: int,
     horizon: int,
-    generator: torch.Generator,
-) -> dict[int, np.ndarray]:
-    """Positions of ``trajectories`` fresh trajectories per configuration. {c: (n, T+1, 2)}"""
-    positions = {}
+    generators: Sequence[torch.Generator],
+) -> list[dict[int, np.ndarray]]:
+    """Positions of ``trajectories`` fresh trajectories per configuration, for every member
+    (member s with randomness from generators[s]). -> [{config: (n, T+1, 2)}] per member"""
+    size = population.size
+    positions: list[dict[int, np.ndarray]] = [{} for _ in range(size)]
     for c in range(world.n_configs):
-        configs = torch.full((trajectories,), c, dtype=torch.long, device=world.device)
-        rollout = collect(world, policy, configs, horizon, generator)
-        positions[c] = rollout.states.float().cpu().numpy()
+        configs = torch.full((size, trajectories), c, dtype=torch.long, device=world.device)
+        rollout = collect(world, population, None, configs, horizon, generators)
+        states = rollout.states.float().cpu().numpy()
+        for s in range(size):
+            positions[s][c] = states[s]
     return positions
 
 
@@ -42,29 +47,24 @@ def save_positions(path: Path, positions: dict[int, np.ndarray]) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def load_positions(path: Path) -> dict[int, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
-        return {
-            int(k.removeprefix("positions_c")): data[k]
-            for k in data.files
-            if k.startswith("positions_c")
-        }
-
-
 def evaluate_and_save(
     world: NavigationWorld,
-    policy: Policy,
-    out_dir: Path,
+    population: PolicyPopulation,
+    out_dirs: Sequence[Path],
     name: str,
     trajectories: int,
     horizon: int,
-    generator: torch.Generator,
+    generators: Sequence[torch.Generator],
     plot_trajectories: int = 10,
     plot_every: int = 10,
-) -> Path:
-    """Roll out, save ``<out_dir>/<name>.npz`` and the run's heatmap and trajectory PNGs."""
-    positions = rollout_positions(world, policy, trajectories, horizon, generator)
-    path = Path(out_dir) / f"{name}.npz"
-    save_positions(path, positions)
-    save_run_plots(world, positions, Path(out_dir) / name, plot_trajectories, plot_every)
-    return path
+) -> list[Path]:
+    """Roll out every member; save ``<out_dirs[s]>/<name>.npz`` and its heatmap and trajectory
+    PNGs. -> the .npz paths"""
+    positions = rollout_positions(world, population, trajectories, horizon, generators)
+    paths = []
+    for out_dir, member_positions in zip(out_dirs, positions, strict=True):
+        path = Path(out_dir) / f"{name}.npz"
+        save_positions(path, member_positions)
+        save_run_plots(world, member_positions, Path(out_dir) / name, plot_trajectories, plot_every)
+        paths.append(path)
+    return paths

@@ -82,6 +82,8 @@ class RunLog:
             backtracks=u.backtracks,
             lr=u.lr,
             history_max=stats.history_max,
+            action_max=stats.action_max,
+            diverged=stats.diverged,
             floor_share=stats.floor_share,
             seconds=stats.seconds["epoch"],
             collect_seconds=stats.seconds["collect"],

@@ -4,14 +4,20 @@ Per epoch: draw N trajectories in mini-batches of B (one configuration each), se
 once, then repeat gradient ascent on the objective over the importance-weighted mini-batch
 entropies (eq. 2.7) while the kNN estimate of the KL (eq. 2.8) between the sampling policy and
 the updated one stays within delta, at most ``max_off_iters`` times. When the very first step
-already leaves the trust region the learning rate is divided by ``backtrack_coeff`` and the step
-retried, as Mepol does; a later step that leaves it is undone and ends the epoch.
+already leaves the trust region the learning rate is divided by ``lr_backtrack_factor`` and the
+step retried, as Mepol does; a later step that leaves it is undone and ends the epoch.
+
+The trainer runs a *population*: runs that differ only in their seed, as one batched program
+(:mod:`hmepol_cli.population`). Every member has its own run directory, random stream, Adam
+state, learning-rate backtracking and trust region; a member whose off-policy loop has stopped
+stays where it stopped while the others go on. A single run is a population of one.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import logging
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -23,21 +29,26 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from hmepol_cli import estimators
-from hmepol_cli.checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
+from hmepol_cli.checkpoint import CHECKPOINT, RunDirError, load_checkpoint, save_checkpoint
 from hmepol_cli.config import parse_bptt
 from hmepol_cli.envs import make_world
 from hmepol_cli.evaluation import evaluate_and_save
 from hmepol_cli.objectives import objective
 from hmepol_cli.policies import make_policy
+from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
 from hmepol_cli.rollout import Rollout, collect, draw_configs
 from hmepol_cli.run_log import RunLog
 from hmepol_cli.seeding import DTYPES, get_device, make_generator, set_random_seed
 
+log = logging.getLogger("hmepol")
+
 
 @dataclass
 class UpdateResult:
-    entropies: torch.Tensor  # (M,) IW entropies of the accepted policy
-    kl: float
+    """One member's off-policy loop in one epoch."""
+
+    entropies: np.ndarray  # (M,) IW entropies of the accepted policy
+    kl: float  # KL of the accepted policy (the one the trust region judged by)
     off_iters: int
     backtracks: int
     lr: float
@@ -45,205 +56,367 @@ class UpdateResult:
 
 @dataclass
 class EpochStats:
+    """One member's epoch."""
+
     entropies: np.ndarray  # (M,) on-policy kNN entropy of each mini-batch (eq. 2.6)
     batch_configs: np.ndarray  # (M,) configuration of each mini-batch
     objective: float
     update: UpdateResult
     history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
+    action_max: float = 0.0  # largest |a_t| drawn (before clipping): diverging means show here
     floor_share: float = 0.0  # share of particles whose ball volume hit the estimator's floor
+    diverged: bool = False  # |h'| or |a| past the alarm bounds
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-class Trainer:
-    """Trains one policy in one world with one estimator; owns its run directory's files."""
+@dataclass
+class Member:
+    """One run of the population: its config, directory, random stream and files."""
 
-    def __init__(self, cfg: DictConfig, run_dir: Path) -> None:
-        self.cfg, self.run_dir = cfg, Path(run_dir)
+    cfg: DictConfig
+    run_dir: Path
+    generator: torch.Generator
+    log: RunLog
+    start_epoch: int = 0
+
+
+class Trainer:
+    """Trains a population of runs that differ only in their seed; owns their run directories."""
+
+    def __init__(
+        self,
+        cfgs: DictConfig | list[DictConfig],
+        run_dirs: Path | str | list[Path | str],
+    ) -> None:
+        cfgs = [cfgs] if isinstance(cfgs, DictConfig) else list(cfgs)
+        run_dirs = [run_dirs] if isinstance(run_dirs, str | Path) else list(run_dirs)
+        if len(cfgs) != len(run_dirs) or not cfgs:
+            raise ValueError("one run directory per member config, and at least one member")
+        self.cfg = cfg = cfgs[0]  # what the members share: everything but the seed
         self.device = get_device(cfg.device)
         self.dtype = DTYPES[cfg.dtype]
+        if self.device.type == "cuda":
+            torch.set_float32_matmul_precision(cfg.matmul_precision)
         keep_freed_memory()
-        set_random_seed(cfg.seed)
         self.world = make_world(cfg.env).to(self.device, self.dtype)
-        self.policy = make_policy(cfg.policy, self.world.state_dim, self.world.action_dim)
-        self.policy.to(self.device, self.dtype)
-        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=cfg.algo.lr)
-        self.generator = make_generator(self.device, cfg.seed)
+        policies = []
+        for member_cfg in cfgs:
+            set_random_seed(member_cfg.seed)  # each member's initial weights, as its own run
+            policies.append(make_policy(cfg.policy, self.world.state_dim, self.world.action_dim))
+        vectorize = {"auto": "auto", "on": True, "off": False}[cfg.vmap]
+        self.population = PolicyPopulation(policies, vectorize).to(self.device, self.dtype)
+        self.optimizer = PopulationAdam(self.population.params)
+        self.members = [
+            Member(c, Path(d), make_generator(self.device, c.seed), RunLog(Path(d), c, self.world))
+            for c, d in zip(cfgs, run_dirs, strict=True)
+        ]
         self.bptt = parse_bptt(cfg.policy.bptt)
-        self.log = RunLog(self.run_dir, cfg, self.world)
-        self.start_epoch = 0
+        self.exact_kl = cfg.algo.trust_region == "exact" and self.population.history_size > 0
+
+    @property
+    def size(self) -> int:
+        return len(self.members)
 
     # ------------------------------------------------------------------ checkpoints
-    def save(self, next_epoch: int) -> None:
+    def save(self, s: int, next_epoch: int) -> None:
+        member = self.members[s]
         save_checkpoint(
-            self.run_dir / CHECKPOINT,
+            member.run_dir / CHECKPOINT,
             {
                 "epoch": next_epoch,
-                "policy": self.policy.state_dict(),
-                "optimizer": self.optimizer.state_dict(),
-                "generator": self.generator.get_state(),
+                "policy": self.population.member_state_dict(s),
+                "optimizer": self.optimizer.member_state_dict(s),
+                "generator": member.generator.get_state(),
                 "state_dim": self.world.state_dim,
                 "action_dim": self.world.action_dim,
             },
         )
 
-    def restore(self) -> bool:
-        """Continue from the last checkpoint if there is one. -> whether one was loaded."""
-        path = self.run_dir / CHECKPOINT
-        if not path.is_file():
-            return False
-        state = load_checkpoint(path, map_location=self.device)
-        self.policy.load_state_dict(state["policy"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.generator.set_state(state["generator"].cpu())
-        self.start_epoch = int(state["epoch"])
-        self.log.truncate(self.start_epoch)  # rows of an epoch the checkpoint does not cover
-        return True
+    def restore(self) -> list[int]:
+        """Continue every member from its last checkpoint, if it has one.
+
+        -> the members that were restored."""
+        restored = []
+        for s, member in enumerate(self.members):
+            path = member.run_dir / CHECKPOINT
+            if not path.is_file():
+                member.log.truncate(0)  # rows written before a first checkpoint are not kept
+                continue
+            state = load_checkpoint(path, map_location=self.device)
+            try:
+                self.population.load_member_state_dict(s, state["policy"])
+                self.optimizer.load_member_state_dict(s, state["optimizer"])
+            except (KeyError, TypeError) as error:
+                raise RunDirError(
+                    f"{path}: this checkpoint does not match the run's policy and optimizer "
+                    f"({error}); it cannot be resumed"
+                ) from None
+            member.generator.set_state(state["generator"].cpu())
+            member.start_epoch = int(state["epoch"])
+            member.log.truncate(member.start_epoch)  # rows the checkpoint does not cover
+            restored.append(s)
+        return restored
 
     # ------------------------------------------------------------------ Algorithm 3.1
-    def train(self) -> Path:
+    def train(self) -> list[Path]:
         cfg = self.cfg
+        first = min(m.start_epoch for m in self.members)
+        label = f"{cfg.env.name}/{cfg.algo.name}" + (f" x{self.size}" if self.size > 1 else "")
         bar = tqdm(
-            range(self.start_epoch, cfg.epochs),
-            initial=self.start_epoch,
+            range(first, cfg.epochs),
+            initial=first,
             total=cfg.epochs,
-            desc=f"{cfg.env.name}/{cfg.algo.name}",
+            desc=label,
             disable=not cfg.progress,
             dynamic_ncols=True,
         )
         for epoch in bar:
-            stats = self.epoch()
-            self.log.append(epoch, stats, self.world.n_configs)
-            self.save(epoch + 1)
+            # Members restored at a later epoch (a crash between two members' checkpoints)
+            # sit out the epochs they already have.
+            due = [s for s, m in enumerate(self.members) if m.start_epoch <= epoch]
+            stats = self.epoch(due)
+            for s, member_stats in zip(due, stats, strict=True):
+                self.members[s].log.append(epoch, member_stats, self.world.n_configs)
+                self.save(s, epoch + 1)
+                if member_stats.diverged:
+                    self._warn_divergence(s, epoch, member_stats)
             bar.set_postfix(
-                H=f"{stats.entropies.mean():.3f}",
-                KL=f"{stats.update.kl:.3g}",
-                it=stats.update.off_iters,
+                H=f"{np.mean([st.entropies.mean() for st in stats]):.3f}",
+                KL=f"{max(st.update.kl for st in stats):.3g}",
+                it=f"{np.mean([st.update.off_iters for st in stats]):.3g}",
             )
-            if cfg.eval.every and (epoch + 1) % cfg.eval.every == 0 and epoch + 1 < cfg.epochs:
-                self.evaluate(f"epoch_{epoch + 1:04d}")
+            done = epoch + 1
+            if cfg.eval.every and done % cfg.eval.every == 0 and done < cfg.epochs:
+                self.evaluate(f"epoch_{done:04d}")
         bar.close()
         self.evaluate("final")
-        self.log.finish(cfg.epochs)
-        return self.run_dir
+        for member in self.members:
+            member.log.finish(cfg.epochs)
+        return [m.run_dir for m in self.members]
 
-    def epoch(self) -> EpochStats:
-        a = self.cfg.algo
+    def epoch(self, due: list[int] | None = None) -> list[EpochStats]:
+        """One epoch of the members ``due`` (default: all). -> their stats, in that order."""
+        a, e = self.cfg.algo, self.cfg.estimator
+        due = list(range(self.size)) if due is None else due
+        members = torch.tensor(due, device=self.device)
+        generators = [self.members[s].generator for s in due]
         t0 = time.perf_counter()
-        configs = draw_configs(self.world, a.trajectories, a.batch_size, self.generator)
-        rollout = collect(self.world, self.policy, configs, a.horizon, self.generator)
+        configs = torch.stack(
+            [draw_configs(self.world, a.trajectories, a.batch_size, g) for g in generators]
+        )  # (S', N)
+        rollout = collect(self.world, self.population, members, configs, a.horizon, generators)
         t1 = time.perf_counter()
-        particles = estimators.particles_by_batch(rollout.particles, a.batch_size)
-        neighbours = estimators.nearest_neighbours(
-            particles, self.cfg.estimator.k, self.cfg.estimator.neighbours
-        )
-        entropies = estimators.knn_entropy(neighbours, self.cfg.estimator.eps)
+        particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), a.batch_size)
+        neighbours = estimators.nearest_neighbours(particles, e.k, e.neighbours)  # (S' M, P, k)
+        entropies = estimators.knn_entropy(neighbours, e.eps).view(len(due), -1)  # (S', M)
         t2 = time.perf_counter()
-        update = self.trust_region_update(rollout, neighbours)
+        updates = self.trust_region_update(members, rollout, neighbours)
         t3 = time.perf_counter()
-        return EpochStats(
-            entropies=entropies.double().cpu().numpy(),
-            batch_configs=configs[:: a.batch_size].cpu().numpy(),
-            objective=float(objective(entropies, a.objective, a.alpha)),
-            update=update,
-            history_max=float(rollout.histories.abs().max()) if rollout.histories.numel() else 0.0,
-            floor_share=float(estimators.floor_share(neighbours, self.cfg.estimator.eps)),
-            seconds={
-                "collect": t1 - t0,
-                "neighbours": t2 - t1,
-                "update": t3 - t2,
-                "epoch": t3 - t0,
-            },
-        )
+        seconds = {"collect": t1 - t0, "neighbours": t2 - t1, "update": t3 - t2, "epoch": t3 - t0}
+        # One transfer for every per-member statistic.
+        alarms = self.cfg.alarms
+        history_max = _amax_per_member(rollout.histories)
+        action_max = _amax_per_member(rollout.actions)
+        floor = estimators.floor_share(neighbours, e.eps, per_batch=True).view(len(due), -1)
+        objectives = objective(entropies, a.objective, a.alpha)
+        host = torch.stack(
+            [
+                history_max.double(),
+                action_max.double(),
+                floor.mean(-1).double(),
+                objectives.double(),
+            ]
+        ).cpu()
+        entropies_host = entropies.double().cpu().numpy()
+        configs_host = configs[:, :: a.batch_size].cpu().numpy()
+        stats = []
+        for i in range(len(due)):
+            h_max, a_max, floor_i, objective_i = host[:, i].tolist()
+            stats.append(
+                EpochStats(
+                    entropies=entropies_host[i],
+                    batch_configs=configs_host[i],
+                    objective=objective_i,
+                    update=updates[i],
+                    history_max=h_max,
+                    action_max=a_max,
+                    floor_share=floor_i,
+                    diverged=h_max > alarms.history_bound or a_max > alarms.action_bound,
+                    seconds=seconds,
+                )
+            )
+        return stats
 
     def trust_region_update(
-        self, rollout: Rollout, neighbours: estimators.Neighbours
-    ) -> UpdateResult:
-        a, policy, optimizer = self.cfg.algo, self.policy, self.optimizer
+        self, members: torch.Tensor, rollout: Rollout, neighbours: estimators.Neighbours
+    ) -> list[UpdateResult]:
+        """The off-policy loop of every member in ``members`` (S',), as one batched program.
 
-        def evaluate(behaviour: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
-            """-> (IW entropies (M,), KL, objective, target log-likelihoods (N, T))."""
-            target = policy.log_prob(rollout.inputs, rollout.actions, rollout.histories, self.bptt)
-            behaviour = target.detach() if behaviour is None else behaviour
-            weights = estimators.importance_weights(target - behaviour, a.batch_size)
-            entropies = estimators.iw_entropy(weights, neighbours, self.cfg.estimator.eps)
-            kl = estimators.kl_divergence(weights, neighbours).mean()
+        Each member keeps its own learning rate, backtracks and stopping point; gradients are
+        those of each member's own objective (the members' objectives share no parameters).
+        """
+        a, eps = self.cfg.algo, self.cfg.estimator.eps
+        population, optimizer = self.population, self.optimizer
+        params = population.params
+        n_sel = len(members)
+        m_batches = neighbours.radius.shape[0] // n_sel
+        row_of = {int(s): i for i, s in enumerate(members.tolist())}  # member -> row of rollout
+
+        def evaluate(rows: torch.Tensor, behaviour: torch.Tensor | None = None):
+            """The objective of the members in rollout rows ``rows``.
+
+            -> (IW entropies (R, M), KL (R,), objective (R,), likelihoods (R, N, T))."""
+            inputs = rollout.inputs.index_select(0, rows)
+            actions = rollout.actions.index_select(0, rows)
+            histories = rollout.histories.index_select(0, rows)
+            who = members.index_select(0, rows)
+            target = population.log_prob(who, inputs, actions, histories, self.bptt)
+            behaviour = target.detach() if behaviour is None else behaviour.index_select(0, rows)
+            nb = _select_batches(neighbours, rows, m_batches)
+            weights = estimators.importance_weights(
+                (target - behaviour).flatten(0, 1), a.batch_size
+            )
+            entropies = estimators.iw_entropy(weights, nb, eps).view(len(rows), -1)
+            if self.exact_kl:
+                # The guard the one-step likelihoods lack: the KL of the same step computed from
+                # likelihoods over the whole history, against the exact sampling likelihoods.
+                with torch.no_grad():
+                    exact = population.log_prob(who, inputs, actions, histories, None)
+                    sampling = rollout.log_probs.index_select(0, rows)
+                    exact_w = estimators.importance_weights(
+                        (exact - sampling).flatten(0, 1), a.batch_size
+                    )
+                    kl = estimators.kl_divergence(exact_w, nb).view(len(rows), -1).mean(-1)
+            else:
+                kl = estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)
             return entropies, kl, objective(entropies, a.objective, a.alpha), target.detach()
 
-        lr = a.lr
-        _set_lr(optimizer, lr)
-        accepted = _snapshot(policy, optimizer)
-        # The sampling policy's likelihoods (same bptt mode) are the behaviour: ratio 1 at start.
-        entropies, kl, value, behaviour = evaluate()
-        result = UpdateResult(entropies.detach(), 0.0, 0, 0, lr)
-        while result.off_iters < a.max_off_iters:
-            optimizer.zero_grad(set_to_none=True)
-            (-value).backward()
-            optimizer.step()
-            entropies, kl, value, _ = evaluate(behaviour)
+        def gradients(value: torch.Tensor) -> dict[str, torch.Tensor]:
+            """Gradient of -objective of each member (they share no parameter: one backward)."""
+            grads = torch.autograd.grad(-value.sum(), list(params.values()), allow_unused=True)
+            return {
+                k: torch.zeros_like(v) if g is None else g
+                for (k, v), g in zip(params.items(), grads, strict=True)
+            }
+
+        size = population.size
+        in_epoch = torch.zeros(size, dtype=torch.bool, device=self.device)
+        in_epoch[members] = True
+        lr = torch.full((size,), float(a.lr), dtype=torch.float64, device=self.device)
+        off_iters, backtracks = [0] * size, [0] * size
+        all_rows = torch.arange(n_sel, device=self.device)
+        entropies, kl, value, behaviour = evaluate(all_rows)
+        grads = gradients(value)
+        result_entropies = entropies.detach().double().cpu().numpy()
+        result_kl = [0.0] * n_sel
+        snapshot = Snapshot(population, optimizer, grads)
+        active = in_epoch & (a.max_off_iters > 0)
+        while bool(active.any()):
+            optimizer.step(grads, lr, active)
+            stepped = active.nonzero()[:, 0]
+            rows = torch.tensor([row_of[int(s)] for s in stepped.tolist()], device=self.device)
+            entropies, kl, value, _ = evaluate(rows, behaviour)
+            new_grads = gradients(value)
+            stepped_mask = torch.zeros(size, dtype=torch.bool, device=self.device)
+            stepped_mask[stepped] = True
+            grads = {
+                k: torch.where(stepped_mask.view((-1,) + (1,) * (g.dim() - 1)), new_grads[k], g)
+                for k, g in grads.items()
+            }
             in_region = (kl <= a.kl_threshold) & torch.isfinite(value)
             # One host sync per iteration: on a GPU the loop waits for the device only here.
-            step_kept, kl_value = torch.stack((in_region.to(kl.dtype), kl.detach())).tolist()
-            if step_kept:
-                accepted = _snapshot(policy, optimizer)
-                result = UpdateResult(
-                    entropies.detach(), kl_value, result.off_iters + 1, result.backtracks, lr
-                )
-                continue
-            _load_snapshot(policy, optimizer, accepted)
-            if result.off_iters > 0 or result.backtracks >= a.backtrack_tries:
-                break
-            lr /= a.backtrack_coeff  # the first step overshot: backtrack on the learning rate
-            _set_lr(optimizer, lr)
-            result.backtracks += 1
-            result.lr = lr
-            entropies, kl, value, _ = evaluate(behaviour)
-        _set_lr(optimizer, a.lr)
-        return result
+            flags, kl_values = torch.stack((in_region.to(kl.dtype), kl.detach())).tolist()
+            accepted = torch.zeros(size, dtype=torch.bool, device=self.device)
+            rejected = torch.zeros(size, dtype=torch.bool, device=self.device)
+            accepted_rows = []
+            for i, s in enumerate(stepped.tolist()):
+                if flags[i]:
+                    accepted[s] = True
+                    off_iters[s] += 1
+                    result_kl[row_of[s]] = kl_values[i]
+                    accepted_rows.append((i, row_of[s]))
+                    if off_iters[s] >= a.max_off_iters:
+                        active[s] = False
+                    continue
+                rejected[s] = True
+                if off_iters[s] > 0 or backtracks[s] >= a.lr_backtrack_tries:
+                    active[s] = False
+                else:  # the first step overshot: backtrack on the learning rate
+                    lr[s] /= a.lr_backtrack_factor
+                    backtracks[s] += 1
+            if accepted_rows:
+                kept = entropies.detach().double().cpu().numpy()
+                for i, row in accepted_rows:
+                    result_entropies[row] = kept[i]
+            snapshot.take(population, optimizer, grads, accepted)
+            snapshot.restore(population, optimizer, grads, rejected)
+        lr_host = lr.tolist()
+        return [
+            UpdateResult(
+                entropies=result_entropies[row_of[s]],
+                kl=result_kl[row_of[s]],
+                off_iters=off_iters[s],
+                backtracks=backtracks[s],
+                lr=lr_host[s],
+            )
+            for s in members.tolist()
+        ]
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, name: str) -> Path:
+    def evaluate(self, name: str) -> list[Path]:
+        """Fresh rollouts of every member's policy in every configuration, saved to eval/."""
         e = self.cfg.eval
-        # A generator of its own, so evaluation never shifts the training stream (exact resume).
-        generator = make_generator(self.device, zlib.crc32(f"{self.cfg.seed}/{name}".encode()))
+        # Generators of their own, so evaluation never shifts the training streams (exact resume).
+        generators = [
+            make_generator(self.device, zlib.crc32(f"{m.cfg.seed}/{name}".encode()))
+            for m in self.members
+        ]
         return evaluate_and_save(
             self.world,
-            self.policy,
-            self.run_dir / "eval",
+            self.population,
+            [m.run_dir / "eval" for m in self.members],
             name,
             e.trajectories,
             e.horizon,
-            generator,
+            generators,
             plot_trajectories=e.plot_trajectories,
             plot_every=e.plot_every,
         )
 
-
-def _set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-
-
-def _snapshot(policy: torch.nn.Module, optimizer: torch.optim.Optimizer) -> tuple[dict, dict]:
-    return _clone(policy.state_dict()), _clone(optimizer.state_dict())
-
-
-def _load_snapshot(
-    policy: torch.nn.Module, optimizer: torch.optim.Optimizer, snap: tuple[dict, dict]
-) -> None:
-    policy.load_state_dict(snap[0])
-    # load_state_dict keeps the given tensors, which Adam then updates in place: hand it a copy.
-    optimizer.load_state_dict(_clone(snap[1]))
+    def _warn_divergence(self, s: int, epoch: int, stats: EpochStats) -> None:
+        alarms = self.cfg.alarms
+        log.warning(
+            "%s: epoch %d: the policy is diverging: max |h'| = %.3g (alarms.history_bound = %g), "
+            "max |a| = %.3g (alarms.action_bound = %g)",
+            self.members[s].run_dir,
+            epoch,
+            stats.history_max,
+            alarms.history_bound,
+            stats.action_max,
+            alarms.action_bound,
+        )
 
 
-def _clone(state):
-    """A copy of a (nested) state dict with every tensor cloned; cheaper than copy.deepcopy."""
-    if isinstance(state, torch.Tensor):
-        return state.detach().clone()
-    if isinstance(state, dict):
-        return {key: _clone(value) for key, value in state.items()}
-    if isinstance(state, list):
-        return [_clone(value) for value in state]
-    return state
+def _amax_per_member(values: torch.Tensor) -> torch.Tensor:
+    """Largest |value| of each member's slice. (S', ...) -> (S',)"""
+    if values.numel() == 0:
+        return torch.zeros(values.shape[0], device=values.device, dtype=values.dtype)
+    return values.abs().flatten(1).amax(dim=1)
+
+
+def _select_batches(
+    neighbours: estimators.Neighbours, rows: torch.Tensor, m_batches: int
+) -> estimators.Neighbours:
+    """The mini-batches of some members: neighbours of (S' M) mini-batches -> (R M)."""
+    if len(rows) * m_batches == neighbours.radius.shape[0]:
+        return neighbours
+    idx = neighbours.indices.view(-1, m_batches, *neighbours.indices.shape[1:])
+    radius = neighbours.radius.view(-1, m_batches, neighbours.radius.shape[-1])
+    return estimators.Neighbours(
+        indices=idx.index_select(0, rows).flatten(0, 1),
+        radius=radius.index_select(0, rows).flatten(0, 1),
+        dim=neighbours.dim,
+    )
 
 
 def keep_freed_memory() -> None:

@@ -702,13 +702,13 @@ def test_no_ball_volume_hits_the_floor_on_the_initial_policy(name, batch_size):
     from hmepol_cli import estimators
     from hmepol_cli.config import PolicyConfig
     from hmepol_cli.policies import make_policy
-    from hmepol_cli.rollout import collect
+    from hmepol_cli.rollout import collect_single
 
     world = WORLDS[name]
     torch.manual_seed(0)
     policy = make_policy(PolicyConfig(), world.state_dim, world.action_dim)
     configs = torch.arange(world.n_configs).repeat_interleave(batch_size).repeat(2)
-    rollout = collect(world, policy, configs, 400, _gen(0))
+    rollout = collect_single(world, policy, configs, 400, _gen(0))
     particles = estimators.particles_by_batch(rollout.particles, batch_size)
     neighbours = estimators.nearest_neighbours(particles, 30)
     assert float(estimators.floor_share(neighbours, 1e-10)) == 0.0

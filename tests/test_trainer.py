@@ -1,37 +1,215 @@
-"""The trust-region loop in-process: the KL bound holds, backtracking engages, lr is restored."""
+"""The trust-region loop in-process: the KL bound holds, backtracking engages and is undone,
+a population trains its members exactly as their own runs would, the exact trust region
+catches what the one-step one misses, and divergence is reported."""
 
 from __future__ import annotations
 
+import logging
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
+from hmepol_cli import estimators
 from hmepol_cli.cli import register_configs  # noqa: F401  (schema and resolvers)
+from hmepol_cli.rollout import collect, draw_configs
 from hmepol_cli.trainer import Trainer
 from tests.test_cli import TINY
 
 
-def tiny_trainer(tmp_path, *overrides: str) -> Trainer:
+def compose_cfg(*overrides: str):
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
         cfg = compose(config_name="config", overrides=[*TINY, *overrides])
     GlobalHydra.instance().clear()
-    return Trainer(cfg, tmp_path / "run")
+    return cfg
+
+
+def tiny_trainer(tmp_path, *overrides: str) -> Trainer:
+    return Trainer(compose_cfg(*overrides), tmp_path / "run")
+
+
+def population(tmp_path, seeds, *overrides: str) -> Trainer:
+    cfgs = [compose_cfg(*overrides, f"seed={s}") for s in seeds]
+    return Trainer(cfgs, [tmp_path / f"member{s}" for s in seeds])
 
 
 def test_every_accepted_update_stays_inside_the_trust_region(tmp_path):
     threshold = 1e-4
     trainer = tiny_trainer(tmp_path, f"algo.kl_threshold={threshold}", "algo.lr=1e-2")
     for _ in range(3):
-        stats = trainer.epoch()
+        (stats,) = trainer.epoch()
         assert stats.update.kl <= threshold
-        assert trainer.optimizer.param_groups[0]["lr"] == 1e-2  # restored after backtracking
-    # With so tight a region and so large a step the first step overshoots: lr is halved.
+    # With so tight a region and so large a step the first step overshoots: lr is halved ...
     assert stats.update.backtracks > 0 and stats.update.lr < 1e-2
+    # ... for that epoch only: the next one starts again from algo.lr.
+    assert stats.update.lr == pytest.approx(1e-2 / 2**stats.update.backtracks)
 
 
 def test_a_loose_region_runs_every_off_policy_iteration(tmp_path):
     trainer = tiny_trainer(tmp_path, "algo.kl_threshold=1e9", "algo.max_off_iters=4")
-    stats = trainer.epoch()
+    (stats,) = trainer.epoch()
     assert stats.update.off_iters == 4 and stats.update.backtracks == 0
     # The IW objective of the accepted policy improved on the sampling policy's estimate.
     assert float(stats.update.entropies.mean()) > float(stats.entropies.mean())
+
+
+# ------------------------------------------------------------------ populations
+@pytest.mark.parametrize(
+    "algo, policy",
+    [
+        ("mepol", "markov"),
+        ("alphamepol", "markov"),
+        ("hmepol", "recursive"),
+        ("hmepol", "markov"),
+        ("mepol", "recursive"),
+    ],
+)
+def test_each_member_of_a_population_trains_exactly_as_its_own_run(tmp_path, algo, policy):
+    """Three seeds in one population and three separate runs: identical epochs, although the
+    members stop their off-policy loops at different iterations."""
+    overrides = (
+        f"algo={algo}",
+        f"policy={policy}",
+        "algo.kl_threshold=0.02",
+        "algo.max_off_iters=8",
+    )
+    seeds = (0, 1, 2)
+    together = population(tmp_path / "population", seeds, *overrides)
+    runs = [tiny_trainer(tmp_path / f"seed{s}", *overrides, f"seed={s}") for s in seeds]
+    stopped_at = set()
+    for _ in range(2):
+        members = together.epoch()
+        for s, run in enumerate(runs):
+            (alone,) = run.epoch()
+            mine = members[s]
+            np.testing.assert_array_equal(mine.entropies, alone.entropies)
+            np.testing.assert_array_equal(mine.batch_configs, alone.batch_configs)
+            np.testing.assert_array_equal(mine.update.entropies, alone.update.entropies)
+            assert (mine.update.kl, mine.update.off_iters, mine.update.backtracks) == (
+                alone.update.kl,
+                alone.update.off_iters,
+                alone.update.backtracks,
+            )
+            stopped_at.add((mine.update.off_iters, mine.update.backtracks))
+            for name, value in run.population.params.items():
+                assert torch.equal(together.population.params[name][s], value[0]), name
+    assert len(stopped_at) > 1, "the members should stop at different points"
+
+
+@pytest.mark.parametrize("name", ["markov", "recursive", "twohead", "gru", "lstm"])
+@pytest.mark.parametrize("bptt", ["1", "3", "full"])
+def test_vmap_and_the_member_loop_compute_the_same_function(tmp_path, name, bptt):
+    """What a GPU runs (vmap over the members) against what a CPU runs (a loop), in float64:
+    the same rollout, the same likelihoods and the same gradients."""
+    if name == "markov" and bptt != "1":
+        pytest.skip("a Markovian policy has no history")
+    overrides = (f"policy={name}", f"policy.bptt={bptt}", "dtype=float64")
+    looped = population(tmp_path / "loop", (0, 1), *overrides, "vmap=off")
+    mapped = population(tmp_path / "vmap", (0, 1), *overrides, "vmap=on")
+    rollouts, values = [], []
+    for trainer in (looped, mapped):
+        gens = [m.generator for m in trainer.members]
+        configs = torch.stack([draw_configs(trainer.world, 10, 5, g) for g in gens])
+        rollout = collect(trainer.world, trainer.population, None, configs, 40, gens)
+        log_p = trainer.population.log_prob(
+            None, rollout.inputs, rollout.actions, rollout.histories, trainer.bptt
+        )
+        grads = torch.autograd.grad(
+            log_p.sin().sum(), list(trainer.population.params.values()), allow_unused=True
+        )
+        rollouts.append(rollout)
+        values.append((log_p, grads))
+    torch.testing.assert_close(rollouts[0].states, rollouts[1].states, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(values[0][0], values[1][0], rtol=1e-10, atol=1e-10)
+    for a, b in zip(values[0][1], values[1][1], strict=True):
+        assert (a is None) == (b is None)  # twohead's history head is unused at bptt = 1
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+
+
+def test_a_member_due_later_sits_out_the_epochs_it_already_has(tmp_path):
+    """A population restored with members at different epochs (a crash between two members'
+    checkpoints) runs each epoch only for the members that need it."""
+    trainer = population(tmp_path, (0, 1), "epochs=3")
+    trainer.members[1].start_epoch = 1
+    before = trainer.population.member_state_dict(1)
+    (stats,) = trainer.epoch([0])
+    after = trainer.population.member_state_dict(1)
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert stats.update.off_iters > 0
+
+
+# ------------------------------------------------------------------ the exact trust region
+def first_step(tmp_path, trust_region: str, kl_threshold: float):
+    """One off-policy step of a recursive policy whose recursion is near-critical: a one-layer
+    ReLU encoder h'_t = relu(W_s s_t + 0.99 h'_{t-1} + 0.05), as a ReLU recursion becomes when
+    training makes it expansive. A step that changes the recursion a little changes every later
+    history: the one-step likelihoods (stored h'_{t-1} as input) see one step of that change,
+    the exact ones all of it. -> (update result, trainer, rollout, neighbours)"""
+    trainer = tiny_trainer(
+        tmp_path / f"{trust_region}-{kl_threshold}",
+        "algo=hmepol",
+        "policy.bptt=1",
+        "policy.encoder_hidden=[]",
+        "policy.init_mean_scale=1",
+        "dtype=float64",
+        "algo.horizon=200",
+        "algo.lr=1e-4",
+        "algo.max_off_iters=1",
+        "algo.lr_backtrack_tries=0",
+        f"algo.trust_region={trust_region}",
+        f"algo.kl_threshold={kl_threshold}",
+    )
+    params = trainer.population.params
+    with torch.no_grad():
+        history_size = params["encoder.0.weight"].shape[1]
+        eye = torch.eye(history_size, dtype=torch.float64)
+        params["encoder.0.weight"][0, :, 2:] = 0.99 * eye
+        params["encoder.0.bias"][0] = 0.05
+    gen = trainer.members[0].generator
+    configs = draw_configs(trainer.world, 10, 5, gen)[None]
+    rollout = collect(trainer.world, trainer.population, None, configs, 200, [gen])
+    particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
+    neighbours = estimators.nearest_neighbours(particles, 5)
+    (result,) = trainer.trust_region_update(torch.tensor([0]), rollout, neighbours)
+    return result, trainer, rollout, neighbours
+
+
+def test_the_exact_trust_region_rejects_a_step_the_one_step_kl_accepts(tmp_path):
+    one_step, *_ = first_step(tmp_path, "gradient", 1e9)
+    exact, trainer, rollout, neighbours = first_step(tmp_path, "exact", 1e9)
+    # The same step (the gradient uses bptt = 1 in both), judged by two KLs.
+    for name, value in trainer.population.params.items():
+        assert value.isfinite().all(), name
+    # The exact KL, recomputed here from likelihoods over the whole history.
+    full = trainer.population.log_prob(
+        None, rollout.inputs, rollout.actions, rollout.histories, None
+    ).detach()
+    weights = estimators.importance_weights((full - rollout.log_probs).flatten(0, 1), 5)
+    assert exact.kl == pytest.approx(float(estimators.kl_divergence(weights, neighbours).mean()))
+    assert exact.kl > 3 * one_step.kl > 0  # measured: 4.99 and 0.97
+    # A threshold between the two: the one-step region accepts the step, the exact one does not.
+    threshold = (one_step.kl + exact.kl) / 2
+    accepted, *_ = first_step(tmp_path, "gradient", threshold)
+    rejected, *_ = first_step(tmp_path, "exact", threshold)
+    assert accepted.off_iters == 1
+    assert rejected.off_iters == 0
+
+
+# ------------------------------------------------------------------ divergence is reported
+def test_a_diverging_run_says_so_in_its_log_and_its_csv(tmp_path, caplog):
+    trainer = tiny_trainer(
+        tmp_path, "algo=hmepol", "epochs=2", "alarms.history_bound=1e-6", "progress=false"
+    )
+    with caplog.at_level(logging.WARNING, logger="hmepol"):
+        trainer.train()
+    rows = pd.read_csv(tmp_path / "run" / "epochs.csv")
+    assert rows.diverged.all() and (rows.history_max > 1e-6).all()
+    assert "diverging" in caplog.text and "alarms.history_bound" in caplog.text
+    calm = tiny_trainer(tmp_path / "calm", "algo=hmepol", "epochs=1", "progress=false")
+    calm.train()
+    assert not pd.read_csv(tmp_path / "calm" / "run" / "epochs.csv").diverged.any()

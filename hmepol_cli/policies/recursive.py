@@ -6,7 +6,9 @@
   400 steps); ``encoder_activation="tanh"`` bounds it.
 - ``TwoHeadPolicy``: one network with two outputs, the action mean and the next history.
 - ``GRUPolicy`` / ``LSTMPolicy``: gated recurrent encoders; the LSTM's history tensor holds
-  [h, c] side by side, so every policy carries one (N, H) tensor.
+  [h, c] side by side, so every policy carries one (N, H) tensor. Their gates are written out
+  on linear layers (the equations of ``torch.nn.GRUCell`` / ``LSTMCell``), so a population of
+  them runs under ``torch.vmap``, which has no batching rule for the fused cells.
 """
 
 from __future__ import annotations
@@ -79,14 +81,20 @@ class GRUPolicy(Policy):
     ):
         super().__init__(state_dim, action_dim, **init)
         self.history_size = history_size
-        self.cell = nn.GRUCell(state_dim, history_size)
+        self.input_gates = nn.Linear(state_dim, 3 * history_size)  # reset, update, new
+        self.hidden_gates = nn.Linear(history_size, 3 * history_size)
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        next_history = self.cell(states, history)
+        x_r, x_z, x_n = self.input_gates(states).chunk(3, dim=-1)
+        h_r, h_z, h_n = self.hidden_gates(history).chunk(3, dim=-1)
+        reset = torch.sigmoid(x_r + h_r)
+        update = torch.sigmoid(x_z + h_z)
+        new = torch.tanh(x_n + reset * h_n)
+        next_history = (1 - update) * new + update * history
         return self.head(next_history), next_history
 
 
@@ -102,7 +110,8 @@ class LSTMPolicy(Policy):
         super().__init__(state_dim, action_dim, **init)
         self.cell_size = history_size
         self.history_size = 2 * history_size  # [h, c]
-        self.cell = nn.LSTMCell(state_dim, history_size)
+        self.input_gates = nn.Linear(state_dim, 4 * history_size)  # input, forget, cell, output
+        self.hidden_gates = nn.Linear(history_size, 4 * history_size)
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
 
@@ -110,5 +119,8 @@ class LSTMPolicy(Policy):
         self, states: torch.Tensor, history: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         h, c = history.split(self.cell_size, dim=-1)
-        h, c = self.cell(states, (h, c))
+        gates = self.input_gates(states) + self.hidden_gates(h)
+        i, f, g, o = gates.chunk(4, dim=-1)
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+        h = torch.sigmoid(o) * torch.tanh(c)
         return self.head(h), torch.cat((h, c), dim=-1)
