@@ -20,11 +20,13 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.plugins import Plugins
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from hmepol_cli.checkpoint import RUN_INFO, RunDirError, read_json, run_config
 from hmepol_cli.config import ConfigError, register_configs, validate
+from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
 
 log = logging.getLogger("hmepol")
 
@@ -63,6 +65,9 @@ def _job_dir_resolver(override_dirname: str) -> str:
 OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
 OmegaConf.register_new_resolver("hmepol_job_dir", _job_dir_resolver, replace=True)
 register_configs()
+# Hydra scans the hydra_plugins namespace for launchers, which an editable install hides from
+# it: register ours by hand (its public API; a no-op when the scan found it).
+Plugins.instance().register(PopulationLauncher)
 
 
 class UserError(Exception):
@@ -100,33 +105,87 @@ def _resumed_config(cfg: DictConfig, run_dir: Path) -> DictConfig:
     return saved
 
 
-def _train(cfg: DictConfig) -> str | None:
+def _train(cfg: DictConfig) -> list[str]:
+    """One run, or a population (``seeds=[...]``): members that differ only in their seed."""
+    if cfg.seeds:
+        if cfg.resume is not None:
+            raise ConfigError("resume= continues one run; give it a member's run directory")
+        members = _population_members(cfg)
+    elif cfg.resume is not None:
+        members = [(_resumed_config(cfg, Path(cfg.resume)), Path(cfg.resume))]
+    else:
+        members = [(cfg, Path(HydraConfig.get().runtime.output_dir))]
+    return train_runs(members, resume=cfg.resume is not None)
+
+
+def _population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
+    """Each seed's config, and the run directory the same job with ``seed=<s>`` instead of
+    ``seeds=[...]`` would have had: a population leaves ordinary runs where a sweep over seed
+    would. (A single ``hmepol train seeds=[...]`` puts them in ``<run dir>/seed<s>``.)"""
+    seeds = [int(s) for s in cfg.seeds]
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError(f"seeds={seeds} holds a seed twice")
+    hc = HydraConfig.get()
+    members = []
+    for seed in seeds:
+        member = cfg.copy()
+        with open_dict(member):
+            member.seed, member.seeds = seed, None
+        if hc.mode == RunMode.MULTIRUN:
+            run_dir = Path(str(hc.sweep.dir)) / _member_subdir(hc, seed)
+        else:
+            run_dir = Path(hc.runtime.output_dir) / f"seed{seed}"
+        members.append((member, run_dir))
+    return members
+
+
+def _member_subdir(hc: DictConfig, seed: int) -> str:
+    """hydra.sweep.subdir of this job with ``seeds=[...]`` replaced by ``seed=<seed>``."""
+    from hydra._internal.config_loader_impl import get_overrides_dirname
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    lines = [o for o in hc.overrides.task if o.lstrip("+~").partition("=")[0] != "seeds"]
+    overrides = OverridesParser.create().parse_overrides([*lines, f"seed={seed}"])
+    naming = hc.job.config.override_dirname
+    dirname = get_overrides_dirname(
+        overrides, list(naming.exclude_keys), naming.item_sep, naming.kv_sep
+    )
+    job = OmegaConf.create({"hydra": OmegaConf.to_container(hc, resolve=False)})
+    job.hydra.job.override_dirname = dirname
+    return str(job.hydra.sweep.subdir)
+
+
+def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> list[str]:
+    """Train runs that differ only in their seed as one population (skipping finished ones,
+    continuing interrupted ones). -> their run directories"""
     from hmepol_cli.trainer import Trainer
 
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    resuming = cfg.resume is not None
-    if resuming:
-        run_dir = Path(cfg.resume)
-        cfg = _resumed_config(cfg, run_dir)
-    validate(cfg)
-    info_file = run_dir / RUN_INFO
-    if not resuming and info_file.exists():
-        info = read_json(info_file)
-        if (
-            cfg.skip_finished
-            and info.get("status") == "finished"
-            and info.get("epochs_done", 0) >= cfg.epochs
-        ):
-            print(f"hmepol: {run_dir} already finished ({cfg.epochs} epochs); skipped")
-            return str(run_dir)
-        resuming = True  # an interrupted sweep job continues where it stopped
-    _set_threads(cfg)
-    trainer = Trainer(cfg, run_dir)
-    if resuming and trainer.restore():
-        print(f"hmepol: resuming {run_dir} at epoch {trainer.members[0].start_epoch}")
-    trainer.train()
-    print(f"hmepol: run written to {run_dir}")
-    return str(run_dir)
+    todo, resuming = [], resume
+    for cfg, run_dir in members:
+        validate(cfg)
+        info_file = run_dir / RUN_INFO
+        if not resume and info_file.exists():
+            info = read_json(info_file)
+            if (
+                cfg.skip_finished
+                and info.get("status") == "finished"
+                and info.get("epochs_done", 0) >= cfg.epochs
+            ):
+                print(f"hmepol: {run_dir} already finished ({cfg.epochs} epochs); skipped")
+                continue
+            resuming = True  # an interrupted sweep job continues where it stopped
+        todo.append((cfg, run_dir))
+    if todo:
+        _set_threads(todo[0][0])
+        trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
+        if resuming:
+            for s in trainer.restore():
+                member = trainer.members[s]
+                print(f"hmepol: resuming {member.run_dir} at epoch {member.start_epoch}")
+        trainer.train()
+        for _, run_dir in todo:
+            print(f"hmepol: run written to {run_dir}")
+    return [str(d) for _, d in members]
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")

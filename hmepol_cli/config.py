@@ -92,6 +92,8 @@ class Config:
     eval: EvalConfig = field(default_factory=EvalConfig)
     alarms: AlarmConfig = field(default_factory=AlarmConfig)
     seed: int = 0
+    # A population: runs that differ only in their seed, trained together (one per seed).
+    seeds: list[int] | None = None
     device: str = "cpu"  # cpu | cuda | auto
     dtype: str = "float32"  # float32 | float64
     # float32 matrix products on a GPU: highest (exact float32) | high (TF32, ~3x faster)

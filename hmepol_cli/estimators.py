@@ -74,23 +74,33 @@ def _kdtree_search(particles: torch.Tensor, k: int) -> tuple[torch.Tensor, torch
 
 
 def _torch_search(
-    particles: torch.Tensor, k: int, chunk: int = 4096
+    particles: torch.Tensor, k: int, budget: int = 1 << 27
 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pairwise distances, in pieces of at most ``budget`` entries (0.5 GB in float32): a few
+    mini-batches at a time, and a slice of their queries when one mini-batch is too large
+    (80,000 particles)."""
     x = particles.detach()
-    m, _, dim = x.shape
+    m, p, dim = x.shape
+    queries_per_piece = max(1, min(p, budget // p))
+    batches_per_piece = max(1, budget // (queries_per_piece * p))
     idx_parts, dist_parts = [], []
-    for start in range(0, x.shape[1], chunk):
-        queries = x[:, start : start + chunk]
-        d = torch.cdist(queries, x)  # (M, c, P)
-        _, idx = d.topk(k + 1, dim=-1, largest=False, sorted=True)
-        # cdist's matrix-product shortcut leaves ~1e-4 (float32) between coincident particles,
-        # where kdtree says 0: recompute the candidates' distances from differences.
-        candidates = torch.gather(x, 1, idx.reshape(m, -1, 1).expand(-1, -1, dim))
-        dist = (candidates.view(*idx.shape, dim) - queries[:, :, None]).norm(dim=-1)
-        dist, order = dist.sort(dim=-1, stable=True)
-        idx_parts.append(idx.gather(-1, order))
-        dist_parts.append(dist)
-    return torch.cat(idx_parts, dim=1), torch.cat(dist_parts, dim=1)
+    for b0 in range(0, m, batches_per_piece):
+        xb = x[b0 : b0 + batches_per_piece]
+        idx_rows, dist_rows = [], []
+        for q0 in range(0, p, queries_per_piece):
+            queries = xb[:, q0 : q0 + queries_per_piece]
+            d = torch.cdist(queries, xb)  # (m', q, P)
+            _, idx = d.topk(k + 1, dim=-1, largest=False, sorted=True)
+            # cdist's matrix-product shortcut leaves ~1e-4 (float32) between coincident
+            # particles, where kdtree says 0: recompute the candidates' distances from differences.
+            candidates = torch.gather(xb, 1, idx.reshape(len(xb), -1, 1).expand(-1, -1, dim))
+            dist = (candidates.view(*idx.shape, dim) - queries[:, :, None]).norm(dim=-1)
+            dist, order = dist.sort(dim=-1, stable=True)
+            idx_rows.append(idx.gather(-1, order))
+            dist_rows.append(dist)
+        idx_parts.append(torch.cat(idx_rows, dim=1))
+        dist_parts.append(torch.cat(dist_rows, dim=1))
+    return torch.cat(idx_parts, dim=0), torch.cat(dist_parts, dim=0)
 
 
 def _split_self(idx: torch.Tensor, dist: torch.Tensor, k: int, dim: int) -> Neighbours:

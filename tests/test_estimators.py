@@ -96,6 +96,18 @@ def test_neighbour_methods_agree_on_coincident_float32_particles():
     torch.testing.assert_close(knn_entropy(a), knn_entropy(b))
 
 
+@pytest.mark.parametrize("budget", [300 * 300, 3 * 300 * 300, 1000])
+def test_the_torch_search_in_pieces_equals_the_whole_search(budget):
+    # A few mini-batches at a time, and a slice of the queries when one is too large: the same
+    # neighbours as the search in one piece, and as kdtree's distances.
+    from hmepol_cli.estimators import _kdtree_search, _torch_search
+
+    x = torch.rand(7, 300, 2, generator=gen(16), dtype=torch.float64)
+    whole, pieces = _torch_search(x, 5), _torch_search(x, 5, budget=budget)
+    assert torch.equal(whole[0], pieces[0]) and torch.equal(whole[1], pieces[1])
+    torch.testing.assert_close(pieces[1], _kdtree_search(x, 5)[1], rtol=0, atol=1e-15)
+
+
 def test_bad_k_and_method_are_refused():
     x = torch.zeros(1, 5, 2)
     with pytest.raises(ValueError, match="k=5"):

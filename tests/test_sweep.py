@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 from omegaconf import OmegaConf
 
 from tests.test_cli import TINY
@@ -55,3 +56,61 @@ def test_a_failed_job_does_not_stop_the_others(tmp_path):
     finished = [d for d, cfg in runs(tmp_path / "sweep").items() if (d / "epochs.csv").exists()]
     assert [runs(tmp_path / "sweep")[d].estimator.k for d in finished] == [3]
     assert "estimator.k=0" in proc.stderr
+
+
+def test_group_by_seed_makes_one_job_per_population():
+    from hydra_plugins.hmepol_population_launcher.population_launcher import group_by_seed
+
+    jobs = [
+        ["algo=mepol", "seed=0"],
+        ["algo=hmepol", "seed=0"],
+        ["algo=mepol", "seed=1"],
+        ["algo=hmepol", "seed=1"],
+        ["algo=mepol", "seed=2"],
+        ["wind=0.4"],
+        ["wind=0.05"],
+    ]
+    assert group_by_seed(jobs) == [
+        ["algo=mepol", "seeds=[0,1,2]"],
+        ["algo=hmepol", "seeds=[0,1]"],
+        ["wind=0.4"],
+        ["wind=0.05"],
+    ]
+    assert group_by_seed(jobs, max_members=2) == [
+        ["algo=mepol", "seeds=[0,1]"],
+        ["algo=mepol", "seed=2"],
+        ["algo=hmepol", "seeds=[0,1]"],
+        ["wind=0.4"],
+        ["wind=0.05"],
+    ]
+
+
+def test_a_population_sweep_leaves_the_runs_a_sweep_over_seeds_would(tmp_path):
+    """Three seeds through the population launcher: the three run directories an ordinary sweep
+    writes, with its curves, read by the report like any others, and skipped when run again."""
+    for folder in ("population", "plain"):
+        (tmp_path / folder).mkdir()
+    grouped = sweep(tmp_path / "population", "seed=0,1,2", "hydra/launcher=population")
+    assert grouped.returncode == 0, grouped.stderr[-3000:]
+    assert "3 runs as 1 jobs" in grouped.stdout + grouped.stderr
+    plain = sweep(tmp_path / "plain", "seed=0,1,2", "hydra/launcher=basic")
+    assert plain.returncode == 0, plain.stderr[-3000:]
+    members, separate = runs(tmp_path / "population" / "sweep"), runs(tmp_path / "plain" / "sweep")
+    assert sorted(d.name for d in members) == sorted(d.name for d in separate)
+    assert len(members) == 3
+    for run_dir in separate:
+        twin = tmp_path / "population" / "sweep" / run_dir.name
+        assert OmegaConf.to_yaml(members[twin]) == OmegaConf.to_yaml(separate[run_dir])
+        drop = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time"]
+        a = pd.read_csv(twin / "epochs.csv").drop(columns=drop)
+        b = pd.read_csv(run_dir / "epochs.csv").drop(columns=drop)
+        pd.testing.assert_frame_equal(a, b)
+    report = subprocess.run(
+        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "population" / "sweep")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert report.returncode == 0 and "3 runs used" in report.stdout, report.stderr[-2000:]
+    again = sweep(tmp_path / "population", "seed=0,1,2", "hydra/launcher=population")
+    assert again.returncode == 0 and again.stdout.count("already finished") == 3
