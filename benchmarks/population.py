@@ -246,7 +246,8 @@ def markdown(meta: dict, rows: list[dict]) -> str:
         f"{meta['device']}, torch {meta['torch']}, {meta['threads']} threads, "
         f"matmul precision {meta['precision']}, load {meta['load']}.",
         "",
-        f"| S | population s/epoch | per seed | {separate} | speed-up | update TFLOP/s | of matmul rate |",
+        f"| S | population s/epoch | per seed | {separate} | speed-up | update TFLOP/s "
+        "| of matmul rate |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
