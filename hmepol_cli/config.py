@@ -99,6 +99,7 @@ class Config:
     # float32 matrix products on a GPU: highest (exact float32) | high (TF32, ~3x faster)
     matmul_precision: str = "highest"
     vmap: str = "auto"  # population calls: auto (vmap on cuda, a loop on cpu) | on | off
+    cuda_graphs: bool = True  # on a GPU, replay each rollout's steps as one captured CUDA graph
     epochs: int = 20
     resume: str | None = None
     wind: float = 0.4

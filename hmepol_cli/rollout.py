@@ -63,17 +63,17 @@ def collect(
     horizon: int,
     generators: Sequence[torch.Generator],
     deterministic: bool = False,
+    graphs: dict | None = None,
 ) -> Rollout:
     """Run one trajectory per entry of ``configs`` (S', N) for ``horizon`` steps, member i of
-    the selection ``members`` (None: all) acting in row i with randomness from generators[i]."""
+    the selection ``members`` (None: all) acting in row i with randomness from generators[i].
+
+    ``graphs``: on a GPU, a cache in which the T steps are captured once as a CUDA graph and
+    replayed for every later rollout of the same shape (one launch instead of ~100 a step).
+    """
     s, n = configs.shape
     device, dtype = world.device, world.dtype
-    # Storage is made outside inference mode: the off-policy loop differentiates through it.
-    states = torch.empty(s, n, horizon + 1, world.state_dim, device=device, dtype=dtype)
-    actions = torch.empty(s, n, horizon, world.action_dim, device=device, dtype=dtype)
-    histories = torch.empty(s, n, horizon, population.history_size, device=device, dtype=dtype)
-    log_probs = torch.empty(s, n, horizon, device=device, dtype=dtype)
-    with torch.inference_mode():  # no autograd bookkeeping on the ~100 small ops of each step
+    with torch.inference_mode():
         starts, action_noise, world_noise = [], [], []
         for i, generator in enumerate(generators):
             kw = dict(device=device, dtype=dtype, generator=generator)
@@ -83,7 +83,65 @@ def collect(
         position = torch.stack(starts)  # (S', N, d)
         action_noise = torch.stack(action_noise)  # (S', N, T, a)
         world_noise = torch.stack(world_noise).flatten(0, 1)  # (S' N, T, k)
-        flat_configs = configs.flatten()
+    if graphs is not None and device.type == "cuda":
+        key = (
+            id(world),
+            id(population),
+            None if members is None else tuple(members.tolist()),
+            s,
+            n,
+            horizon,
+            deterministic,
+            tuple(p.data_ptr() for p in population.params.values()),
+        )
+        if key not in graphs:
+            graphs[key] = CapturedSteps(world, population, members, s, n, horizon, deterministic)
+        return graphs[key].run(position, action_noise, world_noise, configs)
+    buffers = _storage(world, population, s, n, horizon)
+    _steps(
+        world,
+        population,
+        members,
+        position,
+        action_noise,
+        world_noise,
+        configs.flatten(),
+        deterministic,
+        *buffers,
+    )
+    return Rollout(*buffers, configs)
+
+
+def _storage(world: NavigationWorld, population: PolicyPopulation, s: int, n: int, horizon: int):
+    """Empty (states, actions, histories, log-likelihoods) of S' x N trajectories of T steps.
+
+    Made outside inference mode: the off-policy loop differentiates through them."""
+    kw = dict(device=world.device, dtype=world.dtype)
+    return (
+        torch.empty(s, n, horizon + 1, world.state_dim, **kw),
+        torch.empty(s, n, horizon, world.action_dim, **kw),
+        torch.empty(s, n, horizon, population.history_size, **kw),
+        torch.empty(s, n, horizon, **kw),
+    )
+
+
+def _steps(
+    world: NavigationWorld,
+    population: PolicyPopulation,
+    members: torch.Tensor | None,
+    position: torch.Tensor,
+    action_noise: torch.Tensor,
+    world_noise: torch.Tensor,
+    flat_configs: torch.Tensor,
+    deterministic: bool,
+    states: torch.Tensor,
+    actions: torch.Tensor,
+    histories: torch.Tensor,
+    log_probs: torch.Tensor,
+) -> None:
+    """The T steps of a rollout, written into the storage."""
+    s, n, horizon = actions.shape[:3]
+    with torch.inference_mode():  # no autograd bookkeeping on the ~100 small ops of each step
         history = population.initial_history(s, n)
         states[:, :, 0] = position
         for t in range(horizon):
@@ -98,7 +156,68 @@ def collect(
             ).view(s, n, -1)
             actions[:, :, t], log_probs[:, :, t] = action, log_prob
             states[:, :, t + 1] = position
-    return Rollout(states, actions, histories, log_probs, configs)
+
+
+class CapturedSteps:
+    """The T steps of a rollout of one shape as a CUDA graph, replayed on fresh inputs.
+
+    The graph reads the population's parameters from their storage, which the optimizer
+    updates in place, so a replay always acts with the current policies."""
+
+    def __init__(
+        self,
+        world: NavigationWorld,
+        population: PolicyPopulation,
+        members: torch.Tensor | None,
+        s: int,
+        n: int,
+        horizon: int,
+        deterministic: bool,
+    ) -> None:
+        kw = dict(device=world.device, dtype=world.dtype)
+        self.position = torch.zeros(s, n, world.state_dim, **kw)
+        self.action_noise = torch.zeros(s, n, horizon, world.action_dim, **kw)
+        self.world_noise = torch.zeros(s * n, horizon, world.noise_size, **kw)
+        self.configs = torch.zeros(s * n, dtype=torch.long, device=world.device)
+        self.outputs = _storage(world, population, s, n, horizon)
+        members = None if members is None else members.clone()
+
+        def body() -> None:
+            _steps(
+                world,
+                population,
+                members,
+                self.position,
+                self.action_noise,
+                self.world_noise,
+                self.configs,
+                deterministic,
+                *self.outputs,
+            )
+
+        side = torch.cuda.Stream()  # warm up (handles, allocator) away from the capture
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            body()
+        torch.cuda.current_stream().wait_stream(side)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            body()
+
+    def run(
+        self,
+        position: torch.Tensor,
+        action_noise: torch.Tensor,
+        world_noise: torch.Tensor,
+        configs: torch.Tensor,
+    ) -> Rollout:
+        with torch.no_grad():
+            self.position.copy_(position)
+            self.action_noise.copy_(action_noise)
+            self.world_noise.copy_(world_noise)
+            self.configs.copy_(configs.flatten())
+        self.graph.replay()
+        return Rollout(*(t.clone() for t in self.outputs), configs)
 
 
 def collect_single(

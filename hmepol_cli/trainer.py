@@ -111,6 +111,9 @@ class Trainer:
             for c, d in zip(cfgs, run_dirs, strict=True)
         ]
         self.bptt = parse_bptt(cfg.policy.bptt)
+        # Captured rollouts (CUDA graphs), one per shape: on a GPU the step loop's ~100 small
+        # kernels a step cost more in launches than in work.
+        self.graphs: dict | None = {} if cfg.cuda_graphs and self.device.type == "cuda" else None
         self.exact_kl = cfg.algo.trust_region == "exact" and self.population.history_size > 0
 
     @property
@@ -204,7 +207,16 @@ class Trainer:
         configs = torch.stack(
             [draw_configs(self.world, a.trajectories, a.batch_size, g) for g in generators]
         )  # (S', N)
-        rollout = collect(self.world, self.population, members, configs, a.horizon, generators)
+        selection = None if len(due) == self.size else members
+        rollout = collect(
+            self.world,
+            self.population,
+            selection,
+            configs,
+            a.horizon,
+            generators,
+            graphs=self.graphs,
+        )
         t1 = time.perf_counter()
         particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), a.batch_size)
         neighbours = estimators.nearest_neighbours(particles, e.k, e.neighbours)  # (S' M, P, k)

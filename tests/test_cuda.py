@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
+from hmepol_cli.rollout import collect, draw_configs
 from tests.test_cli import TINY
 from tests.test_trainer import compose_cfg
 
@@ -60,7 +61,6 @@ def test_a_population_trains_on_the_gpu(tmp_path, algo, policy, bptt):
 def test_vmap_on_the_gpu_equals_the_member_loop_on_the_gpu(tmp_path, algo, policy, bptt):
     """Same device, same random streams, float64: the batched call and the loop over members
     give the same rollout, likelihoods and gradients."""
-    from hmepol_cli.rollout import collect, draw_configs
     from hmepol_cli.trainer import Trainer
 
     overrides = (f"algo={algo}", f"policy={policy}", f"policy.bptt={bptt}", "dtype=float64")
@@ -85,6 +85,34 @@ def test_vmap_on_the_gpu_equals_the_member_loop_on_the_gpu(tmp_path, algo, polic
     for a, b in zip(results[0][2], results[1][2], strict=True):
         if a is not None:
             torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("algo, policy, bptt", CASES[:3] + CASES[-2:])
+def test_a_captured_rollout_replays_what_the_steps_compute(tmp_path, algo, policy, bptt):
+    """cuda_graphs: after an epoch (which captured the rollout and then changed the policies),
+    a replay of the graph equals the same rollout stepped eagerly, from the same random
+    streams (float64)."""
+    from hmepol_cli.trainer import Trainer
+
+    overrides = (f"algo={algo}", f"policy={policy}", f"policy.bptt={bptt}", "dtype=float64")
+    cfgs = [compose_cfg(*overrides, "device=cuda", f"seed={s}") for s in (0, 1)]
+    trainer = Trainer(cfgs, [tmp_path / f"seed{s}" for s in (0, 1)])
+    trainer.epoch()
+    assert len(trainer.graphs) == 1
+    gens = [m.generator for m in trainer.members]
+    configs = torch.stack([draw_configs(trainer.world, 10, 5, g) for g in gens])
+    states = [g.get_state() for g in gens]
+    replayed = collect(
+        trainer.world, trainer.population, None, configs, 40, gens, graphs=trainer.graphs
+    )
+    for g, state in zip(gens, states, strict=True):
+        g.set_state(state)
+    stepped = collect(trainer.world, trainer.population, None, configs, 40, gens)
+    assert len(trainer.graphs) == 1  # replayed, not captured again
+    for field in ("states", "actions", "histories", "log_probs"):
+        torch.testing.assert_close(
+            getattr(replayed, field), getattr(stepped, field), rtol=1e-12, atol=1e-12
+        )
 
 
 def test_cli_train_resume_sweep_finetune_and_report_on_the_gpu(tmp_path):
@@ -118,4 +146,5 @@ def test_cli_train_resume_sweep_finetune_and_report_on_the_gpu(tmp_path):
     )
     assert len(pd.read_csv(tmp_path / "finetune" / "finetune.csv")) == 2
     report = hmepol(tmp_path, "report", str(tmp_path), "--out", str(tmp_path / "report"))
-    assert "4 runs used" in report.stdout
+    # The training run, the sweep's three members and the fine-tuning.
+    assert "5 runs used" in report.stdout
