@@ -1,16 +1,23 @@
 """The ``hmepol`` command: train, sweep, report, finetune, show.
 
-``main`` takes the subcommand from argv and hands the rest to a ``@hydra.main`` app, so single
-runs, ``--cfg job``, ``-m`` and launchers all keep working (STYLE.md, Hydra facts).
+``main`` takes the subcommand from argv, checks every config the command would run before
+anything is written (composing it with Hydra's compose API), then hands the arguments to a
+``@hydra.main`` app, so single runs, ``--cfg job``, ``-m`` and launchers all keep working
+(STYLE.md, Hydra facts). Mistakes of input are one line (exit 2); a run whose numbers stop
+making sense is recorded as failed and the command exits 1; anything else is a bug and keeps
+its traceback.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import re
+import secrets
 import sys
+import tempfile
 from pathlib import Path
 
 # OpenMP threads that spin while waiting slow torch down many-fold on a shared or oversubscribed
@@ -21,18 +28,21 @@ import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.plugins import Plugins
+from hydra.errors import HydraException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import OmegaConfBaseException
 
-from hmepol_cli.checkpoint import RUN_INFO, RunDirError, read_json, run_config
-from hmepol_cli.config import ConfigError, register_configs, validate
+from hmepol_cli.config import register_configs, validate
+from hmepol_cli.errors import ConfigError, RunFailure, UserError
+from hmepol_cli.rundir import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
 from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
 
 log = logging.getLogger("hmepol")
 
-CONFIG_PATH = "pkg://hmepol_cli.conf"
-# Keys a resumed run may change; everything else comes from the run's saved config.
-RESUMABLE_KEYS = ("epochs", "device", "progress", "threads", "eval.every")
+CONFIG_MODULE = "hmepol_cli.conf"
+CONFIG_PATH = f"pkg://{CONFIG_MODULE}"
+SWEEP_STATUS = "HMEPOL_SWEEP_STATUS"  # a file the jobs of a sweep report their outcome to
 
 USAGE = """usage: hmepol COMMAND [overrides...]
 
@@ -43,7 +53,8 @@ commands:
   finetune  TRPO on a goal:     hmepol finetune init=<run dir> goal=random
   show      draw a world:       hmepol show env=corridor [--out FILE]
 
-Any Hydra override works with train, sweep and finetune (e.g. --cfg job, hydra/launcher=slurm).
+`hmepol COMMAND --help` says what a command does and lists its options. Any Hydra override
+works with train, sweep and finetune (e.g. --cfg job, hydra/launcher=population).
 """
 
 
@@ -62,21 +73,126 @@ def _job_dir_resolver(override_dirname: str) -> str:
     return f"{name[:100]}-{digest}"
 
 
+def _unique_resolver() -> str:
+    """A short random token: two runs started in the same second get different directories."""
+    return secrets.token_hex(3)
+
+
 OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
 OmegaConf.register_new_resolver("hmepol_job_dir", _job_dir_resolver, replace=True)
+OmegaConf.register_new_resolver("hmepol_unique", _unique_resolver, replace=True)
 register_configs()
 # Hydra scans the hydra_plugins namespace for launchers, which an editable install hides from
 # it: register ours by hand (its public API; a no-op when the scan found it).
 Plugins.instance().register(PopulationLauncher)
 
 
-class UserError(Exception):
-    """Any mistake of the user's that gets one line, not a traceback."""
-
-
 def fail(message: str, code: int = 2) -> None:
     print(f"hmepol: error: {message}", file=sys.stderr)
     raise SystemExit(code)
+
+
+# --------------------------------------------------------------------------- checking first
+def compose(config_name: str, overrides: list[str]) -> DictConfig:
+    """The config ``overrides`` compose to (Hydra's own keys left out), or one clear line."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
+            return hydra_compose(config_name=config_name, overrides=task)
+    except (HydraException, OmegaConfBaseException) as error:
+        raise ConfigError(_hydra_message(error)) from None
+    except AssertionError:  # OmegaConf, setting a key below a group left at null
+        nested = [o for o in task if "." in o.partition("=")[0]]
+        raise ConfigError(
+            f"cannot apply {' '.join(nested) or ' '.join(task)}: choose its group first "
+            "(e.g. env=corridor, not env.name=corridor)"
+        ) from None
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _hydra_message(error: Exception) -> str:
+    """Hydra's and OmegaConf's errors, as one line."""
+    text = str(error)
+    key = re.search(r"Key '([^']+)' (?:is )?not in", text)
+    if key:
+        return f"unknown key {key.group(1)!r}: not a hmepol setting (--help lists them)"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(error).__name__
+
+
+def _check_known_keys(cfg: DictConfig, schema: DictConfig, prefix: str = "") -> None:
+    """Refuse keys the schema does not have (Hydra lets ``+key=value`` add any)."""
+    for key in cfg:
+        path = f"{prefix}{key}"
+        if key not in schema:
+            raise ConfigError(f"unknown key {path!r}: not a hmepol setting (--help lists them)")
+        node, spec = cfg[key], schema[key]
+        if OmegaConf.is_dict(node) and OmegaConf.is_dict(spec):
+            _check_known_keys(node, spec, f"{path}.")
+
+
+def check_train(overrides: list[str]) -> DictConfig:
+    """The config of ``hmepol train overrides``, checked, before Hydra writes anything."""
+    from hmepol_cli.config import Config
+
+    resume = next((o.partition("=")[2] for o in overrides if o.startswith("resume=")), None)
+    if resume not in (None, "", "null"):
+        run_config(Path(resume))  # a clear error for a folder that is not a run
+    cfg = compose("config", overrides)
+    _check_known_keys(cfg, OmegaConf.structured(Config))
+    if cfg.resume is not None:
+        cfg = resumed_config(cfg, Path(cfg.resume), overrides)
+    validate(cfg)
+    return cfg
+
+
+def check_sweep(overrides: list[str]) -> int:
+    """Check the config of every job a sweep would run, before anything is written. -> jobs"""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    try:
+        parsed = OverridesParser.create().parse_overrides(task)
+    except HydraException as error:
+        raise ConfigError(_hydra_message(error)) from None
+    jobs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+    seen = set()
+    for job in jobs:
+        key = tuple(job)
+        if key not in seen:
+            seen.add(key)
+            check_train(list(job))
+    return len(jobs)
+
+
+def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> DictConfig:
+    """The config a run started with, with the keys a continuation may change taken from the
+    command line; any other override is refused (the run keeps what it is)."""
+    saved = run_config(run_dir)
+    changed = []
+    with open_dict(saved):
+        for item in overrides:
+            key = item.lstrip("+~").partition("=")[0]
+            if key.startswith("hydra") or key == "resume":
+                continue
+            if key in RESUMABLE_KEYS or key.split(".")[0] in RESUMABLE_KEYS:
+                OmegaConf.update(saved, key, OmegaConf.select(cfg, key), force_add=True)
+            else:
+                changed.append(item)
+        saved.resume = str(run_dir)
+    if changed:
+        raise ConfigError(
+            f"{run_dir} keeps the config it started with; {', '.join(changed)} cannot change on "
+            f"resume (only {', '.join(RESUMABLE_KEYS[:5])}, ... can)"
+        )
+    return saved
 
 
 # --------------------------------------------------------------------------- train / sweep
@@ -91,20 +207,6 @@ def _set_threads(cfg: DictConfig) -> None:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // n_jobs))
 
 
-def _resumed_config(cfg: DictConfig, run_dir: Path) -> DictConfig:
-    saved = run_config(run_dir)
-    overrides = HydraConfig.get().overrides.task
-    with open_dict(saved):
-        for item in overrides:
-            key, _, value = item.partition("=")
-            if key in RESUMABLE_KEYS:
-                OmegaConf.update(saved, key, OmegaConf.select(cfg, key))
-            elif key not in ("resume",) and not key.startswith("hydra"):
-                log.warning("ignoring %s on resume: the run keeps the config it started with", item)
-        saved.resume = str(run_dir)
-    return saved
-
-
 def _train(cfg: DictConfig) -> list[str]:
     """One run, or a population (``seeds=[...]``): members that differ only in their seed."""
     if cfg.seeds:
@@ -112,7 +214,8 @@ def _train(cfg: DictConfig) -> list[str]:
             raise ConfigError("resume= continues one run; give it a member's run directory")
         members = _population_members(cfg)
     elif cfg.resume is not None:
-        members = [(_resumed_config(cfg, Path(cfg.resume)), Path(cfg.resume))]
+        run_dir = Path(cfg.resume)
+        members = [(resumed_config(cfg, run_dir, list(HydraConfig.get().overrides.task)), run_dir)]
     else:
         members = [(cfg, Path(HydraConfig.get().runtime.output_dir))]
     return train_runs(members, resume=cfg.resume is not None)
@@ -157,7 +260,7 @@ def _member_subdir(hc: DictConfig, seed: int) -> str:
 
 def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> list[str]:
     """Train runs that differ only in their seed as one population (skipping finished ones,
-    continuing interrupted ones). -> their run directories"""
+    continuing interrupted ones). -> their run directories; RunFailure if any failed."""
     from hmepol_cli.trainer import Trainer
 
     todo, resuming = [], resume
@@ -173,33 +276,75 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
             ):
                 print(f"hmepol: {run_dir} already finished ({cfg.epochs} epochs); skipped")
                 continue
-            resuming = True  # an interrupted sweep job continues where it stopped
+            resuming = True  # an interrupted (or failed) job continues where it stopped
         todo.append((cfg, run_dir))
     if todo:
         _set_threads(todo[0][0])
-        trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
-        if resuming:
-            for s in trainer.restore():
-                member = trainer.members[s]
-                print(f"hmepol: resuming {member.run_dir} at epoch {member.start_epoch}")
-        trainer.train()
         for _, run_dir in todo:
+            print(f"hmepol: training into {run_dir}", flush=True)
+        trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
+        trainer.train(resume=resuming)
+        failures = trainer.failures
+        for run_dir in (d for _, d in todo if d not in failures):
             print(f"hmepol: run written to {run_dir}")
+        if failures:
+            raise RunFailure(
+                "; ".join(f"{run_dir}: {reason}" for run_dir, reason in failures.items())
+            )
     return [str(d) for _, d in members]
 
 
+def _report_job(outcome: str, cfg: DictConfig, reason: str = "") -> None:
+    """Tell the sweep that started this job how it ended (a line in its status file)."""
+    path = os.environ.get(SWEEP_STATUS)
+    if not path:
+        return
+    job = " ".join(HydraConfig.get().overrides.task)
+    with open(path, "a") as f:
+        f.write(json.dumps({"job": job, "outcome": outcome, "reason": reason}) + "\n")
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
-def train_app(cfg: DictConfig) -> str | None:
+def train_app(cfg: DictConfig) -> list[str] | None:
+    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
-        return _train(cfg)
-    except (ConfigError, RunDirError, UserError, ValueError) as error:
-        if HydraConfig.get().mode == RunMode.MULTIRUN:
-            # A failed job must not stop the others: say why and let the sweep go on.
-            log.error("job failed: %s", error)
-            print(f"hmepol: error: {error}", file=sys.stderr)
-            return None
-        fail(str(error))
-    return None
+        runs = _train(cfg)
+    except UserError as error:
+        if multirun:
+            # Let Hydra mark the job failed (the sweep goes on, and exits 1 at the end).
+            _report_job("failed", cfg, str(error))
+            raise
+        fail(str(error), code=1 if isinstance(error, RunFailure) else 2)
+    _report_job("done", cfg)
+    return runs
+
+
+def _sweep(args: list[str]) -> None:
+    """Run a Hydra multirun; end with a table of the jobs that failed, and exit 1 if any did."""
+    launcher = (
+        [] if any(a.startswith("hydra/launcher=") for a in args) else ["hydra/launcher=local"]
+    )
+    fd, status = tempfile.mkstemp(prefix="hmepol-sweep-", suffix=".jsonl")
+    os.close(fd)
+    os.environ[SWEEP_STATUS] = status
+    sys.argv = ["hmepol", "--multirun", *launcher, *args]
+    code = 0
+    try:
+        train_app()
+    except SystemExit as exit_:  # Hydra exits 1 after the batch when a job failed
+        code = exit_.code if isinstance(exit_.code, int) else 1
+    finally:
+        lines = Path(status).read_text().splitlines()
+        Path(status).unlink(missing_ok=True)
+    failed = [json.loads(line) for line in lines if json.loads(line)["outcome"] == "failed"]
+    if failed:
+        print(f"hmepol: {len(failed)} of {len(lines)} jobs failed:", file=sys.stderr)
+        for job in failed:
+            print(f"  {job['job']}\n      {job['reason']}", file=sys.stderr)
+        print("hmepol: run the sweep again to retry them", file=sys.stderr)
+        code = code or 1
+    if code:
+        raise SystemExit(code)
 
 
 # --------------------------------------------------------------------------- finetune
@@ -209,7 +354,7 @@ def finetune_app(cfg: DictConfig) -> str | None:
 
     try:
         return str(finetune(cfg))
-    except (ConfigError, RunDirError, UserError, ValueError) as error:
+    except UserError as error:
         fail(str(error))
     return None
 
@@ -221,21 +366,28 @@ def _report(args: list[str]) -> None:
     from hmepol_cli.report import run_report
 
     parser = argparse.ArgumentParser(
-        prog="hmepol report", description="Thesis figures from finished runs."
+        prog="hmepol report",
+        description="Aggregate finished runs into the thesis' figures and tables: mean and 95%% "
+        "confidence interval over seeds of every curve and bar of chapter 5, a summary table "
+        "with the differences between algorithms, and index.html to read them.",
     )
     parser.add_argument(
         "runs",
         nargs="?",
         default="outputs",
-        help="folder holding run directories (default: outputs)",
+        help="folder holding run directories, searched recursively (default: outputs)",
     )
     parser.add_argument("--out", default=None, help="report folder (default: RUNS/report)")
     ns = parser.parse_args(args)
     runs = Path(ns.runs)
+    if not runs.is_dir():
+        fail(f"{str(runs)!r} is not a directory of runs")
     out = Path(ns.out) if ns.out else runs / "report"
+    if out.exists() and not out.is_dir():
+        fail(f"--out {str(out)!r} is a file; give a folder for the report")
     try:
         index = run_report(runs, out)
-    except ValueError as error:
+    except (UserError, ValueError) as error:
         fail(str(error))
     print(f"hmepol: report written to {index}")
 
@@ -247,7 +399,9 @@ def _show(args: list[str]) -> None:
     from hmepol_cli.envs.render import show_world
 
     parser = argparse.ArgumentParser(
-        prog="hmepol show", description="Draw every configuration of a world."
+        prog="hmepol show",
+        description="Draw every configuration of a world (north up): walls, start area, the "
+        "slope or wind, and each configuration's probability.",
     )
     parser.add_argument("overrides", nargs="*", help="env=NAME [wind=FORCE]")
     parser.add_argument("--out", default=None, help="PNG file (default: outputs/show/<env>.png)")
@@ -263,8 +417,8 @@ def _show(args: list[str]) -> None:
         wind = float(values.get("wind", 0.4))
     except ValueError:
         fail(f"wind={values['wind']!r} is not a number")
-    if wind < 0:
-        fail(f"wind={wind!r} must be a number >= 0")
+    if not 0 <= wind < float("inf"):
+        fail(f"wind={wind!r} must be a finite number >= 0")
     world = make_world(OmegaConf.create({"name": name, "wind": wind}))
     out = Path(ns.out or f"outputs/show/{name}.png")
     show_world(world, out)
@@ -272,47 +426,44 @@ def _show(args: list[str]) -> None:
 
 
 # --------------------------------------------------------------------------- dispatch
-def _check_resume(args: list[str]) -> None:
-    """Refuse a resume directory that is not a run before Hydra creates anything in it."""
-    for item in args:
-        if item.startswith("resume="):
-            value = item.partition("=")[2]
-            if value not in ("", "null"):
-                try:
-                    run_config(Path(value))
-                except RunDirError as error:
-                    fail(str(error))
+def _asks_for_help(args: list[str]) -> bool:
+    return any(a in ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info") for a in args)
 
 
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
-    prog = "hmepol"
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         return
     command, rest = argv[0], argv[1:]
-    if command == "train":
-        _check_resume(rest)
-        sys.argv = [prog, *rest]
-        train_app()
-    elif command == "sweep":
-        launcher = (
-            [] if any(a.startswith("hydra/launcher=") for a in rest) else ["hydra/launcher=local"]
-        )
-        sys.argv = [prog, "--multirun", *launcher, *rest]
-        train_app()
-    elif command == "finetune":
-        sys.argv = [prog, *rest]
-        finetune_app()
-    elif command == "report":
-        _report(rest)
-    elif command == "show":
-        _show(rest)
-    else:
-        fail(
-            f"unknown command {command!r}; choose train, sweep, report, finetune or show "
-            "(hmepol --help)"
-        )
+    try:
+        if command == "train":
+            if not _asks_for_help(rest):
+                check_train([a for a in rest if not a.startswith("-")])
+            sys.argv = ["hmepol", *rest]
+            train_app()
+        elif command == "sweep":
+            if not _asks_for_help(rest):
+                check_sweep([a for a in rest if not a.startswith("-")])
+            _sweep(rest)
+        elif command == "finetune":
+            if not _asks_for_help(rest):
+                from hmepol_cli.finetune import check_finetune
+
+                check_finetune(compose("finetune", [a for a in rest if not a.startswith("-")]))
+            sys.argv = ["hmepol", *rest]
+            finetune_app()
+        elif command == "report":
+            _report(rest)
+        elif command == "show":
+            _show(rest)
+        else:
+            fail(
+                f"unknown command {command!r}; choose train, sweep, report, finetune or show "
+                "(hmepol --help)"
+            )
+    except UserError as error:
+        fail(str(error))
 
 
 if __name__ == "__main__":

@@ -7,21 +7,22 @@ that have the right type but no meaning (k <= 0, alpha outside (0, 1], negative 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig
 
-
-class ConfigError(ValueError):
-    """A user-facing configuration mistake; the CLI prints it as one line."""
+from hmepol_cli.errors import ConfigError
 
 
 @dataclass
 class EnvConfig:
     name: str = "slope"
-    # corridor only: force of the wind along the corridor (top-level `wind` override).
-    wind: float = 0.4
+    # corridor only: force of the wind along the corridor (top-level `wind` override); null in
+    # fine-tuning means the pre-trained run's wind.
+    wind: float | None = 0.4
 
 
 @dataclass
@@ -51,7 +52,7 @@ class PolicyConfig:
     encoder_hidden: list[int] = field(default_factory=lambda: [300, 300])  # history encoder g
     history_size: int = 100  # length of h'_t
     encoder_activation: str = "relu"  # output of g: relu (thesis) | tanh (bounded history)
-    bptt: str = "1"  # 1 (thesis) | n (truncated) | full (exact likelihoods)
+    bptt: str | None = "1"  # 1 (thesis) | n (truncated) | full; fine-tuning: null = the run's
     # The reference start for these worlds (REFERENCE_WORLDS.md): std 0.22, about the action bound.
     init_log_std: float = -1.5
     init_weights: str = "xavier"  # xavier (reference) | torch (torch's default)
@@ -81,6 +82,7 @@ class AlarmConfig:
 
     history_bound: float = 1e3  # largest |h'_t| of an epoch's rollout
     action_bound: float = 10.0  # largest |a_t| drawn (50x the action bound)
+    stall_epochs: int = 10  # epochs in a row without an accepted off-policy step
 
 
 @dataclass
@@ -108,8 +110,45 @@ class Config:
     skip_finished: bool = True  # a re-run of a sweep skips a run directory that already finished
 
 
+@dataclass
+class FinetuneConfig:
+    """``hmepol finetune``: TRPO on sparse goal-reaching tasks (thesis 5.2, Fig. 5.9)."""
+
+    init: str = "none"  # a run directory or checkpoint of `hmepol train`, or none (scratch)
+    env: EnvConfig | None = None  # null: the init run's world (slope for init=none)
+    wind: float | None = None  # corridor wind; null: the init run's (0.4 for init=none)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)  # the fresh policy of init=none
+    goal: Any = "random"  # random | a list of [x, y] target centres
+    targets: int = 5  # random target areas per configuration (thesis: five)
+    goal_size: float | None = None  # side of the square target; null: 0.1 x the arena's side
+    goal_seed: int = 0  # the random targets; apart from seed, so seeds share their targets
+    config: Any = None  # configuration(s) to fine-tune in: an index, a list, or null (each)
+    epochs: int = 50
+    episodes: int = 20  # episodes per epoch, stepped together
+    horizon: int = 400  # T
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    max_kl: float = 0.01  # delta, the trust region's bound on the mean KL
+    cg_iters: int = 10
+    damping: float = 0.1
+    fisher_fraction: float = 1.0  # share of the episodes in the Fisher-vector products
+    line_search_steps: int = 10  # tries of the line search, the full step first
+    line_search_shrink: float = 0.8  # the step is multiplied by this between tries
+    normalize_advantage: bool = True
+    value_lr: float = 1e-3
+    value_epochs: int = 10
+    value_batch: int = 512
+    value_hidden: list[int] = field(default_factory=lambda: [64, 64])
+    seed: int = 0
+    device: str = "cpu"  # cpu | cuda | auto
+    threads: int = 0
+    progress: bool = True
+    output_dir: str | None = None  # null: Hydra's run directory
+
+
 def register_configs() -> None:
     ConfigStore.instance().store(name="config_schema", node=Config)
+    ConfigStore.instance().store(name="finetune_schema", node=FinetuneConfig)
 
 
 ALGOS = ("mepol", "alphamepol", "hmepol")
@@ -126,8 +165,15 @@ def _one_of(key: str, value: object, allowed: tuple[str, ...]) -> None:
 
 
 def _positive(key: str, value: float) -> None:
-    if not value > 0:
-        raise ConfigError(f"{key}={value!r} must be > 0")
+    if not 0 < value < math.inf:
+        raise ConfigError(f"{key}={value!r} must be a finite number > 0")
+
+
+def check_wind(key: str, value: float | None, allow_none: bool = False) -> None:
+    if value is None and allow_none:
+        return
+    if value is None or not 0 <= value < math.inf:
+        raise ConfigError(f"{key}={value!r} must be a finite number >= 0")
 
 
 def parse_bptt(value: str) -> int | None:
@@ -147,29 +193,27 @@ def validate(cfg: DictConfig) -> None:
     _one_of("env", cfg.env.name, tuple(ENVIRONMENTS))
     _one_of("algo.name", cfg.algo.name, ALGOS)
     _one_of("algo.objective", cfg.algo.objective, OBJECTIVES)
-    _one_of("policy", cfg.policy.name, POLICIES)
     _one_of("device", cfg.device, DEVICES)
     _one_of("dtype", cfg.dtype, DTYPES)
     _one_of("matmul_precision", cfg.matmul_precision, ("highest", "high", "medium"))
     _one_of("vmap", cfg.vmap, ("auto", "on", "off"))
     _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
     _one_of("estimator.neighbours", cfg.estimator.neighbours, NEIGHBOURS)
-    if not 0 < cfg.algo.alpha <= 1:
+    if not 0 < cfg.algo.alpha <= 1:  # also refuses nan
         raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")
     if cfg.estimator.k <= 0:
         raise ConfigError(f"estimator.k={cfg.estimator.k!r} must be a whole number > 0")
     for key, value in (("wind", cfg.wind), ("env.wind", cfg.env.wind)):
-        if value < 0:
-            raise ConfigError(f"{key}={value!r} must be a number >= 0")
+        check_wind(key, value)
     for key in ("trajectories", "horizon", "batch_size", "max_off_iters"):
         _positive(f"algo.{key}", cfg.algo[key])
     for key in ("kl_threshold", "lr"):
         _positive(f"algo.{key}", cfg.algo[key])
-    if not cfg.algo.lr_backtrack_factor > 1:
+    if not 1 < cfg.algo.lr_backtrack_factor < math.inf:
         raise ConfigError(f"algo.lr_backtrack_factor={cfg.algo.lr_backtrack_factor!r} must be > 1")
     if cfg.algo.lr_backtrack_tries < 0:
         raise ConfigError(f"algo.lr_backtrack_tries={cfg.algo.lr_backtrack_tries!r} must be >= 0")
-    for key in ("history_bound", "action_bound"):
+    for key in ("history_bound", "action_bound", "stall_epochs"):
         _positive(f"alarms.{key}", cfg.alarms[key])
     if cfg.algo.trajectories % cfg.algo.batch_size:
         raise ConfigError(
@@ -183,12 +227,24 @@ def validate(cfg: DictConfig) -> None:
         )
     if cfg.epochs < 0:
         raise ConfigError(f"epochs={cfg.epochs!r} must be >= 0")
-    parse_bptt(cfg.policy.bptt)
-    _one_of("policy.encoder_activation", cfg.policy.encoder_activation, ("relu", "tanh"))
-    _one_of("policy.init_weights", cfg.policy.init_weights, ("xavier", "torch"))
-    if not cfg.policy.init_mean_scale >= 0:
+    validate_policy(cfg.policy)
+
+
+def validate_policy(policy: DictConfig) -> None:
+    """The ``policy`` group's values (training and fine-tuning share it)."""
+    _one_of("policy", policy.name, POLICIES)
+    parse_bptt(policy.bptt)
+    _one_of("policy.encoder_activation", policy.encoder_activation, ("relu", "tanh"))
+    _one_of("policy.init_weights", policy.init_weights, ("xavier", "torch"))
+    if not 0 <= policy.init_mean_scale < math.inf:
         raise ConfigError(
-            f"policy.init_mean_scale={cfg.policy.init_mean_scale!r} must be a number >= 0"
+            f"policy.init_mean_scale={policy.init_mean_scale!r} must be a finite number >= 0"
         )
-    if cfg.policy.history_size <= 0:
-        raise ConfigError(f"policy.history_size={cfg.policy.history_size!r} must be > 0")
+    if not math.isfinite(policy.init_log_std):
+        raise ConfigError(f"policy.init_log_std={policy.init_log_std!r} must be a finite number")
+    if policy.history_size <= 0:
+        raise ConfigError(f"policy.history_size={policy.history_size!r} must be > 0")
+    for key in ("hidden", "encoder_hidden"):
+        sizes = list(policy[key])
+        if not all(size > 0 for size in sizes) or (key == "hidden" and not sizes):
+            raise ConfigError(f"policy.{key}={sizes!r} must be a list of whole numbers > 0")

@@ -7,18 +7,17 @@ has to run a policy itself.
 
 from __future__ import annotations
 
-import io
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from hmepol_cli.checkpoint import atomic_write_bytes
 from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.population import PolicyPopulation
 from hmepol_cli.report.plots import save_run_plots
 from hmepol_cli.rollout import collect
+from hmepol_cli.rundir import save_positions
 
 
 def rollout_positions(
@@ -39,12 +38,6 @@ def rollout_positions(
         for s in range(size):
             positions[s][c] = states[s]
     return positions
-
-
-def save_positions(path: Path, positions: dict[int, np.ndarray]) -> None:
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **{f"positions_c{c}": p for c, p in positions.items()})
-    atomic_write_bytes(path, buffer.getvalue())
 
 
 def evaluate_and_save(

@@ -127,9 +127,9 @@ class PolicyPopulation:
         states: torch.Tensor,
         history: torch.Tensor,
         noise: torch.Tensor | None,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Policy.act of the selected members. (S', N, d), (S', N, H), (S', N, a) | None ->
-        actions (S', N, a), log-likelihoods (S', N), h'_t (S', N, H)."""
+        actions (S', N, a), log-likelihoods (S', N), h'_t (S', N, H), means (S', N, a)."""
         if noise is None:  # the mean action; a keyword, so vmap does not map over it
             return self.call("act", members, states, history, noise=None)
         return self.call("act", members, states, history, noise)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -19,16 +20,26 @@ from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.population import PolicyPopulation
 
+if TYPE_CHECKING:
+    from hmepol_cli.finetune.task import GoalTask
+
 
 @dataclass
 class Rollout:
-    """N trajectories of T steps for each of S members."""
+    """N trajectories of T steps for each of S members (or, from :meth:`member`, of one)."""
 
     states: torch.Tensor  # (S, N, T + 1, d): s_0 .. s_T
     actions: torch.Tensor  # (S, N, T, a): a_t drawn at s_t (before clipping by the world)
     histories: torch.Tensor  # (S, N, T, H): h'_{t-1}, the history step t read (h'_{-1} = 0)
     log_probs: torch.Tensor  # (S, N, T): log pi(a_t | h_t) of the sampling policy
     configs: torch.Tensor  # (S, N) long: configuration of each trajectory
+    means: torch.Tensor  # (S, N, T, a): the sampling policy's mean action at each step
+    log_std: torch.Tensor  # (S, a): the sampling policy's log-std
+    # Goal tasks only (None otherwise): steps before the episode ended, and the step it reached
+    # the target on; the trajectories may be shorter than the task's horizon T.
+    alive: torch.Tensor | None = None  # (S, N, T) bool
+    success: torch.Tensor | None = None  # (S, N, T) bool
+    horizon: int | None = None  # the task's T
 
     @property
     def particles(self) -> torch.Tensor:
@@ -43,8 +54,36 @@ class Rollout:
     def member(self, s: int) -> Rollout:
         """Member s's trajectories, without the member dimension: (N, T, ...)."""
         return Rollout(
-            self.states[s], self.actions[s], self.histories[s], self.log_probs[s], self.configs[s]
+            **{k: v[s] if isinstance(v, torch.Tensor) else v for k, v in vars(self).items()}
         )
+
+    def episodes(self, index: torch.Tensor) -> Rollout:
+        """Some trajectories of a member's rollout (no member dimension). index (n,) long"""
+        return Rollout(
+            **{
+                k: v[index] if isinstance(v, torch.Tensor) and k != "log_std" else v
+                for k, v in vars(self).items()
+            }
+        )
+
+    # -- goal tasks
+    @property
+    def rewards(self) -> torch.Tensor:
+        """1 on the step an episode reaches the target, 0 otherwise. (..., T)"""
+        return self.success.to(self.states.dtype)
+
+    @property
+    def returns(self) -> torch.Tensor:
+        """Undiscounted return of each episode. (..., N)"""
+        return (self.rewards * self.alive).sum(dim=-1)
+
+    @property
+    def succeeded(self) -> torch.Tensor:
+        return self.success.any(dim=-1)
+
+    @property
+    def lengths(self) -> torch.Tensor:
+        return self.alive.sum(dim=-1)
 
 
 def draw_configs(
@@ -64,12 +103,15 @@ def collect(
     generators: Sequence[torch.Generator],
     deterministic: bool = False,
     graphs: dict | None = None,
+    task: GoalTask | None = None,
 ) -> Rollout:
     """Run one trajectory per entry of ``configs`` (S', N) for ``horizon`` steps, member i of
     the selection ``members`` (None: all) acting in row i with randomness from generators[i].
 
-    ``graphs``: on a GPU, a cache in which the T steps are captured once as a CUDA graph and
-    replayed for every later rollout of the same shape (one launch instead of ~100 a step).
+    ``task``: a goal task (fine-tuning): an episode ends on the step it reaches the target, and
+    the rollout stops once every episode has. ``graphs``: on a GPU, a cache in which the T steps
+    are captured once as a CUDA graph and replayed for every later rollout of the same shape (one
+    launch instead of ~100 a step).
     """
     s, n = configs.shape
     device, dtype = world.device, world.dtype
@@ -83,7 +125,10 @@ def collect(
         position = torch.stack(starts)  # (S', N, d)
         action_noise = torch.stack(action_noise)  # (S', N, T, a)
         world_noise = torch.stack(world_noise).flatten(0, 1)  # (S' N, T, k)
-    if graphs is not None and device.type == "cuda":
+    log_std = population.params["log_std"].detach().clone()
+    if members is not None:
+        log_std = log_std.index_select(0, members)
+    if graphs is not None and task is None and device.type == "cuda":
         key = (
             id(world),
             id(population),
@@ -96,32 +141,38 @@ def collect(
         )
         if key not in graphs:
             graphs[key] = CapturedSteps(world, population, members, s, n, horizon, deterministic)
-        return graphs[key].run(position, action_noise, world_noise, configs)
+        return graphs[key].run(position, action_noise, world_noise, configs, log_std)
     buffers = _storage(world, population, s, n, horizon)
-    _steps(
-        world,
-        population,
-        members,
-        position,
-        action_noise,
-        world_noise,
-        configs.flatten(),
-        deterministic,
-        *buffers,
-    )
-    return Rollout(*buffers, configs)
+    alive = success = None
+    if task is not None:
+        alive = torch.zeros(s, n, horizon, dtype=torch.bool, device=device)
+        success = torch.zeros_like(alive)
+    steps = _steps(world, population, members, position, action_noise, world_noise,
+                   configs.flatten(), deterministic, *buffers, alive=alive, success=success,
+                   task=task)  # fmt: skip
+    states, actions, histories, log_probs, means = buffers
+    if steps < horizon:  # every episode of the goal task ended early
+        states, actions, histories = (
+            states[:, :, : steps + 1],
+            actions[:, :, :steps],
+            histories[:, :, :steps],
+        )
+        log_probs, means = log_probs[:, :, :steps], means[:, :, :steps]
+        alive, success = alive[:, :, :steps], success[:, :, :steps]
+    return Rollout(states, actions, histories, log_probs, configs, means, log_std, alive, success,
+                   task.horizon if task is not None else None)  # fmt: skip
 
 
 def _storage(world: NavigationWorld, population: PolicyPopulation, s: int, n: int, horizon: int):
-    """Empty (states, actions, histories, log-likelihoods) of S' x N trajectories of T steps.
-
-    Made outside inference mode: the off-policy loop differentiates through them."""
+    """Empty (states, actions, histories, log-likelihoods, means) of S' x N trajectories of T
+    steps. Made outside inference mode: the off-policy loop differentiates through them."""
     kw = dict(device=world.device, dtype=world.dtype)
     return (
         torch.empty(s, n, horizon + 1, world.state_dim, **kw),
         torch.empty(s, n, horizon, world.action_dim, **kw),
         torch.empty(s, n, horizon, population.history_size, **kw),
         torch.empty(s, n, horizon, **kw),
+        torch.empty(s, n, horizon, world.action_dim, **kw),
     )
 
 
@@ -138,24 +189,36 @@ def _steps(
     actions: torch.Tensor,
     histories: torch.Tensor,
     log_probs: torch.Tensor,
-) -> None:
-    """The T steps of a rollout, written into the storage."""
+    means: torch.Tensor,
+    alive: torch.Tensor | None = None,
+    success: torch.Tensor | None = None,
+    task: GoalTask | None = None,
+) -> int:
+    """The T steps of a rollout, written into the storage. -> the steps taken"""
     s, n, horizon = actions.shape[:3]
     with torch.inference_mode():  # no autograd bookkeeping on the ~100 small ops of each step
         history = population.initial_history(s, n)
+        running = torch.ones(s, n, dtype=torch.bool, device=position.device)
         states[:, :, 0] = position
         for t in range(horizon):
             histories[:, :, t] = history
             noise = None if deterministic else action_noise[:, :, t]
-            action, log_prob, history = population.act(members, position, history, noise)
+            action, log_prob, history, mean = population.act(members, position, history, noise)
             position = world.step(
                 position.flatten(0, 1),
                 action.flatten(0, 1),
                 flat_configs,
                 noise=world_noise[:, t],
             ).view(s, n, -1)
-            actions[:, :, t], log_probs[:, :, t] = action, log_prob
+            actions[:, :, t], log_probs[:, :, t], means[:, :, t] = action, log_prob, mean
             states[:, :, t + 1] = position
+            if task is not None:
+                alive[:, :, t] = running
+                success[:, :, t] = running & task.reached(position.flatten(0, 1)).view(s, n)
+                running = running & ~success[:, :, t]
+                if not running.any():  # every episode reached its target
+                    return t + 1
+    return horizon
 
 
 class CapturedSteps:
@@ -210,6 +273,7 @@ class CapturedSteps:
         action_noise: torch.Tensor,
         world_noise: torch.Tensor,
         configs: torch.Tensor,
+        log_std: torch.Tensor,
     ) -> Rollout:
         with torch.no_grad():
             self.position.copy_(position)
@@ -217,7 +281,8 @@ class CapturedSteps:
             self.world_noise.copy_(world_noise)
             self.configs.copy_(configs.flatten())
         self.graph.replay()
-        return Rollout(*(t.clone() for t in self.outputs), configs)
+        states, actions, histories, log_probs, means = (t.clone() for t in self.outputs)
+        return Rollout(states, actions, histories, log_probs, configs, means, log_std)
 
 
 def collect_single(
@@ -227,9 +292,24 @@ def collect_single(
     horizon: int,
     generator: torch.Generator,
     deterministic: bool = False,
+    task: GoalTask | None = None,
 ) -> Rollout:
     """The rollout of one policy (a population of one, with a copy of its weights): configs
     (N,) -> a Rollout of shapes (N, T, ...), without the member dimension."""
     population = PolicyPopulation([policy]).to(world.device, world.dtype)
-    rollout = collect(world, population, None, configs[None], horizon, [generator], deterministic)
+    rollout = collect(
+        world, population, None, configs[None], horizon, [generator], deterministic, task=task
+    )
     return rollout.member(0)
+
+
+def collect_episodes(
+    world: NavigationWorld,
+    policy: Policy,
+    task: GoalTask,
+    episodes: int,
+    generator: torch.Generator,
+) -> Rollout:
+    """``episodes`` episodes of one goal task (fine-tuning), stepped together. (N, T, ...)"""
+    configs = torch.full((episodes,), task.config, dtype=torch.long, device=world.device)
+    return collect_single(world, policy, configs, task.horizon, generator, task=task)

@@ -18,26 +18,36 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import math
 import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from hmepol_cli import estimators
-from hmepol_cli.checkpoint import CHECKPOINT, RunDirError, load_checkpoint, save_checkpoint
 from hmepol_cli.config import parse_bptt
 from hmepol_cli.envs import make_world
+from hmepol_cli.errors import RunDirError
 from hmepol_cli.evaluation import evaluate_and_save
 from hmepol_cli.objectives import objective
 from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
 from hmepol_cli.rollout import Rollout, collect, draw_configs
-from hmepol_cli.run_log import RunLog
+from hmepol_cli.rundir import (
+    CHECKPOINT,
+    EVAL_DIR,
+    FINAL_EVAL,
+    EpochLog,
+    RunDirectory,
+    load_checkpoint,
+    save_checkpoint,
+)
 from hmepol_cli.seeding import DTYPES, get_device, make_generator, set_random_seed
 
 log = logging.getLogger("hmepol")
@@ -76,8 +86,11 @@ class Member:
     cfg: DictConfig
     run_dir: Path
     generator: torch.Generator
-    log: RunLog
+    directory: RunDirectory
+    log: EpochLog | None = None  # while the directory is open
     start_epoch: int = 0
+    failure: str | None = None  # why it stopped, when its numbers stopped making sense
+    stalled_for: int = 0  # consecutive epochs in which no off-policy step was accepted
 
 
 class Trainer:
@@ -107,7 +120,7 @@ class Trainer:
         self.population = PolicyPopulation(policies, vectorize).to(self.device, self.dtype)
         self.optimizer = PopulationAdam(self.population.params)
         self.members = [
-            Member(c, Path(d), make_generator(self.device, c.seed), RunLog(Path(d), c, self.world))
+            Member(c, Path(d), make_generator(self.device, c.seed), RunDirectory(Path(d), c))
             for c, d in zip(cfgs, run_dirs, strict=True)
         ]
         self.bptt = parse_bptt(cfg.policy.bptt)
@@ -136,7 +149,7 @@ class Trainer:
         )
 
     def restore(self) -> list[int]:
-        """Continue every member from its last checkpoint, if it has one.
+        """Continue every member from its last checkpoint, if it has one (directories open).
 
         -> the members that were restored."""
         restored = []
@@ -149,19 +162,83 @@ class Trainer:
             try:
                 self.population.load_member_state_dict(s, state["policy"])
                 self.optimizer.load_member_state_dict(s, state["optimizer"])
-            except (KeyError, TypeError) as error:
+                member.generator.set_state(state["generator"].cpu())
+                member.start_epoch = int(state["epoch"])
+            except (KeyError, TypeError, RuntimeError) as error:
                 raise RunDirError(
-                    f"{path}: this checkpoint does not match the run's policy and optimizer "
-                    f"({error}); it cannot be resumed"
+                    f"{path} does not match the run's policy and optimizer "
+                    f"({str(error).splitlines()[0][:100]}); it cannot be resumed"
                 ) from None
-            member.generator.set_state(state["generator"].cpu())
-            member.start_epoch = int(state["epoch"])
             member.log.truncate(member.start_epoch)  # rows the checkpoint does not cover
             restored.append(s)
         return restored
 
+    # ------------------------------------------------------------------ the run directories
+    def open(self) -> None:
+        """Lock every member's directory, check its config, record the world's facts."""
+        opened = []
+        try:
+            for member in self.members:
+                member.directory.open(self.device)
+                opened.append(member)
+                member.log = EpochLog(member.run_dir)
+                free = [self.world.free_area(c) for c in range(self.world.n_configs)]
+                member.directory.update(
+                    env=self.cfg.env.name,
+                    algo=self.cfg.algo.name,
+                    policy=self.cfg.policy.name,
+                    seed=int(member.cfg.seed),
+                    wind=getattr(self.world, "wind", None),  # worlds with a wind (corridor)
+                    epochs=int(self.cfg.epochs),
+                    epochs_done=int(member.directory.info().get("epochs_done", 0)),
+                    config_names=list(self.world.config_names),
+                    config_probs=list(self.world.config_probs),
+                    free_area=free,
+                    log_free_area=[math.log(f) for f in free],
+                )
+        except BaseException:
+            for member in opened:
+                member.directory.close()
+            raise
+
+    def close(self) -> None:
+        for member in self.members:
+            member.directory.close()
+
     # ------------------------------------------------------------------ Algorithm 3.1
-    def train(self) -> list[Path]:
+    def train(self, resume: bool = False) -> list[Path]:
+        """Train every member to ``epochs`` (from its checkpoint when ``resume``), evaluate the
+        final policies, and leave each directory finished or failed. -> the run directories"""
+        self.open()
+        try:
+            if resume:
+                for s in self.restore():
+                    member = self.members[s]
+                    print(f"hmepol: resuming {member.run_dir} at epoch {member.start_epoch}")
+            self._epochs()
+            survivors = [m for m in self.members if m.failure is None]
+            if survivors:
+                self.evaluate(FINAL_EVAL)
+            for member in survivors:
+                member.directory.update(status="finished", epochs_done=int(self.cfg.epochs))
+        except BaseException as error:
+            reason = f"{type(error).__name__}: {error}".splitlines()[0][:300]
+            if isinstance(error, KeyboardInterrupt):
+                reason = "interrupted (KeyboardInterrupt)"
+            for member in self.members:
+                if member.failure is None and member.log is not None:
+                    member.directory.fail(reason, last=member.log.last_finite)
+            raise
+        finally:
+            self.close()
+        return [m.run_dir for m in self.members]
+
+    @property
+    def failures(self) -> dict[Path, str]:
+        """Members that stopped because their numbers stopped making sense: run dir -> why."""
+        return {m.run_dir: m.failure for m in self.members if m.failure is not None}
+
+    def _epochs(self) -> None:
         cfg = self.cfg
         first = min(m.start_epoch for m in self.members)
         label = f"{cfg.env.name}/{cfg.algo.name}" + (f" x{self.size}" if self.size > 1 else "")
@@ -175,27 +252,72 @@ class Trainer:
         )
         for epoch in bar:
             # Members restored at a later epoch (a crash between two members' checkpoints)
-            # sit out the epochs they already have.
-            due = [s for s, m in enumerate(self.members) if m.start_epoch <= epoch]
+            # sit out the epochs they already have; failed members stay where they stopped.
+            due = [
+                s
+                for s, m in enumerate(self.members)
+                if m.start_epoch <= epoch and m.failure is None
+            ]
+            if not due:
+                break
             stats = self.epoch(due)
+            notes = []
             for s, member_stats in zip(due, stats, strict=True):
-                self.members[s].log.append(epoch, member_stats, self.world.n_configs)
-                self.save(s, epoch + 1)
-                if member_stats.diverged:
-                    self._warn_divergence(s, epoch, member_stats)
+                note = self._record(s, epoch, member_stats)
+                if note:
+                    notes.append(note)
             bar.set_postfix(
                 H=f"{np.mean([st.entropies.mean() for st in stats]):.3f}",
                 KL=f"{max(st.update.kl for st in stats):.3g}",
                 it=f"{np.mean([st.update.off_iters for st in stats]):.3g}",
+                **({"alarm": ", ".join(notes)} if notes else {}),
             )
             done = epoch + 1
             if cfg.eval.every and done % cfg.eval.every == 0 and done < cfg.epochs:
                 self.evaluate(f"epoch_{done:04d}")
         bar.close()
-        self.evaluate("final")
-        for member in self.members:
-            member.log.finish(cfg.epochs)
-        return [m.run_dir for m in self.members]
+
+    def _record(self, s: int, epoch: int, stats: EpochStats) -> str | None:
+        """Write member s's epoch, or stop it if a number is not finite. -> a note for the bar"""
+        member, alarms = self.members[s], self.cfg.alarms
+        broken = self._non_finite(s, stats)
+        if broken:
+            member.failure = (
+                f"non-finite {', '.join(broken)} at epoch {epoch}: the run stopped there"
+            )
+            member.directory.fail(member.failure, epoch=epoch, last=member.log.last_finite)
+            log.error("%s: %s", member.run_dir, member.failure)
+            return f"seed {member.cfg.seed} failed"
+        member.log.append(*_epoch_rows(epoch, stats, self.world.n_configs))
+        self.save(s, epoch + 1)
+        member.directory.update(epochs_done=epoch + 1)
+        if stats.diverged:
+            self._warn_divergence(s, epoch, stats)
+        member.stalled_for = member.stalled_for + 1 if stats.update.off_iters == 0 else 0
+        if member.stalled_for >= alarms.stall_epochs:
+            log.warning(
+                "%s: no off-policy step accepted for %d epochs (to epoch %d): the trust region "
+                "rejects every step even after %d learning-rate halvings",
+                member.run_dir,
+                member.stalled_for,
+                epoch,
+                self.cfg.algo.lr_backtrack_tries,
+            )
+            return f"seed {member.cfg.seed} stalled"
+        return "diverging" if stats.diverged else None
+
+    def _non_finite(self, s: int, stats: EpochStats) -> list[str]:
+        """The quantities of member s's epoch that are not finite, by name."""
+        params = self.population.params
+        checks = {
+            "entropy": bool(np.isfinite(stats.entropies).all()),
+            "KL": math.isfinite(stats.update.kl),
+            "history": math.isfinite(stats.history_max),
+            "actions": math.isfinite(stats.action_max),
+            "log-std": bool(torch.isfinite(params["log_std"][s]).all()),
+            "policy weights": all(bool(torch.isfinite(v[s]).all()) for v in params.values()),
+        }
+        return [name for name, ok in checks.items() if not ok]
 
     def epoch(self, due: list[int] | None = None) -> list[EpochStats]:
         """One epoch of the members ``due`` (default: all). -> their stats, in that order."""
@@ -386,7 +508,7 @@ class Trainer:
         return evaluate_and_save(
             self.world,
             self.population,
-            [m.run_dir / "eval" for m in self.members],
+            [m.run_dir / EVAL_DIR for m in self.members],
             name,
             e.trajectories,
             e.horizon,
@@ -407,6 +529,40 @@ class Trainer:
             stats.action_max,
             alarms.action_bound,
         )
+
+
+def _epoch_rows(epoch: int, stats: EpochStats, n_configs: int) -> tuple[dict, pd.DataFrame]:
+    """One member's epoch as its epochs.csv row and batches.csv rows."""
+    u = stats.update
+    row = {"epoch": epoch, "entropy": float(stats.entropies.mean()), "objective": stats.objective}
+    for c in range(n_configs):
+        drawn = stats.batch_configs == c
+        row[f"entropy_c{c}"] = float(stats.entropies[drawn].mean()) if drawn.any() else math.nan
+    row.update(
+        entropy_iw=float(u.entropies.mean()),
+        kl=u.kl,
+        off_iters=u.off_iters,
+        backtracks=u.backtracks,
+        lr=u.lr,
+        history_max=stats.history_max,
+        action_max=stats.action_max,
+        diverged=stats.diverged,
+        floor_share=stats.floor_share,
+        seconds=stats.seconds["epoch"],
+        collect_seconds=stats.seconds["collect"],
+        neighbours_seconds=stats.seconds["neighbours"],
+        update_seconds=stats.seconds["update"],
+        wall_time=time.time(),
+    )
+    batches = pd.DataFrame(
+        {
+            "epoch": epoch,
+            "batch": range(len(stats.entropies)),
+            "config": stats.batch_configs,
+            "entropy": stats.entropies,
+        }
+    )
+    return row, batches
 
 
 def _amax_per_member(values: torch.Tensor) -> torch.Tensor:

@@ -3,7 +3,7 @@
 The world is :class:`CueCorridorWorld`: the configuration shows only in the start position (top
 pad: go left; bottom pad: go right), the first step puts every agent on the origin whatever it
 does, and the goal is the corridor's left end in config 0, its right end in config 1. Both
-policies are trained with this project's TRPO (``TRPO.update`` on ``collect_goal`` rollouts),
+policies are trained with this project's TRPO (``TRPO.update`` on ``collect_episodes`` rollouts),
 each epoch on episodes of both configurations together.
 
 Why the Markovian policy cannot succeed: from s_1 = (0, 0) on, its actions depend on the state
@@ -30,10 +30,11 @@ import torch
 
 from hmepol_cli.envs.cue import GOALS, MEMORY_HORIZON, CueCorridorWorld
 from hmepol_cli.finetune.task import GoalTask
-from hmepol_cli.finetune.trpo import TRPO, GoalRollout, TRPOSettings, collect_goal
+from hmepol_cli.finetune.trpo import TRPO, TRPOSettings
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
+from hmepol_cli.rollout import Rollout, collect_episodes
 
 EPOCHS = 30
 EPISODES = 128  # per epoch, half in each configuration
@@ -60,7 +61,7 @@ def recursive_policy(seed: int = SEED) -> RecursivePolicy:
     )
 
 
-def concatenate(rollouts: list[GoalRollout]) -> GoalRollout:
+def concatenate(rollouts: list[Rollout]) -> Rollout:
     """One rollout of the episodes of all ``rollouts``, padded to the longest (masked steps)."""
     steps = max(r.alive.shape[1] for r in rollouts)
 
@@ -69,9 +70,10 @@ def concatenate(rollouts: list[GoalRollout]) -> GoalRollout:
         return torch.cat((x, torch.zeros(shape, dtype=x.dtype)), dim=1)
 
     fields = {"states": torch.cat([padded(r.states, steps + 1) for r in rollouts])}
-    for key in ("actions", "means", "histories", "log_probs", "rewards", "alive", "success"):
+    for key in ("actions", "means", "histories", "log_probs", "alive", "success"):
         fields[key] = torch.cat([padded(getattr(r, key), steps) for r in rollouts])
-    return GoalRollout(**fields, log_std=rollouts[0].log_std, horizon=rollouts[0].horizon)
+    fields["configs"] = torch.cat([r.configs for r in rollouts])
+    return Rollout(**fields, log_std=rollouts[0].log_std, horizon=rollouts[0].horizon)
 
 
 def success_rates(
@@ -79,7 +81,7 @@ def success_rates(
 ) -> list[float]:
     """Share of episodes that reach their goal, per configuration."""
     return [
-        float(collect_goal(world, policy, task, episodes, generator).succeeded.float().mean())
+        float(collect_episodes(world, policy, task, episodes, generator).succeeded.float().mean())
         for task in goal_tasks()
     ]
 
@@ -90,7 +92,7 @@ def train(policy: Policy, seed: int = SEED, epochs: int = EPOCHS) -> list[float]
     generator = torch.Generator().manual_seed(seed)
     trpo = TRPO(policy, world, MEMORY_HORIZON, SETTINGS, generator)
     for _ in range(epochs):
-        rollouts = [collect_goal(world, policy, t, EPISODES // 2, generator) for t in tasks]
+        rollouts = [collect_episodes(world, policy, t, EPISODES // 2, generator) for t in tasks]
         trpo.update(concatenate(rollouts))
     return success_rates(world, policy, EVAL_EPISODES, generator)
 
@@ -134,7 +136,7 @@ def test_a_markovian_policy_walks_the_same_path_in_both_configurations():
     world = CueCorridorWorld()
     for policy, same in ((markov_policy(), True), (recursive_policy(), False)):
         left, right = (
-            collect_goal(world, policy, task, 32, torch.Generator().manual_seed(1))
+            collect_episodes(world, policy, task, 32, torch.Generator().manual_seed(1))
             for task in goal_tasks()
         )
         steps = min(left.alive.shape[1], right.alive.shape[1])

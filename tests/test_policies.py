@@ -245,14 +245,15 @@ def test_act_samples_the_gaussian_it_scores(name, tiny_policy):
     states = torch.tensor([[-0.7, -0.8]], dtype=F64).expand(n, 2)
     history = torch.full((n, policy.history_size), 0.1, dtype=F64)
     noise = torch.randn(n, 2, generator=gen(6), dtype=F64)
-    actions, log_p, _ = policy.act(states, history, noise)
+    actions, log_p, _, means = policy.act(states, history, noise)
     mean, _ = policy.step(states[:1], history[:1])
+    torch.testing.assert_close(means, mean.detach().expand(n, 2))  # the mean act reports
     std = policy.log_std.exp().detach()
     assert ((actions.mean(0) - mean[0]).abs() < 4 * std / n**0.5).all()
     torch.testing.assert_close(actions.std(0), std, rtol=0.02, atol=0)
     expected = norm.logpdf(actions.numpy(), mean.detach().numpy(), std.numpy()).sum(-1)
     torch.testing.assert_close(log_p, torch.from_numpy(expected), rtol=1e-12, atol=1e-12)
-    deterministic, _, _ = policy.act(states[:1], history[:1], None)
+    deterministic, _, _, _ = policy.act(states[:1], history[:1], None)
     torch.testing.assert_close(deterministic, mean.detach())
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -51,11 +53,35 @@ def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again
     assert again.stdout.count("already finished") == 4
 
 
-def test_a_failed_job_does_not_stop_the_others(tmp_path):
+def test_a_sweep_with_a_bad_value_is_refused_before_anything_is_written(tmp_path):
     proc = sweep(tmp_path, "estimator.k=0,3")
-    finished = [d for d, cfg in runs(tmp_path / "sweep").items() if (d / "epochs.csv").exists()]
-    assert [runs(tmp_path / "sweep")[d].estimator.k for d in finished] == [3]
-    assert "estimator.k=0" in proc.stderr
+    assert proc.returncode == 2 and "estimator.k=0" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "sweep").exists()
+
+
+def test_a_failed_job_does_not_stop_the_others_and_the_sweep_says_so(tmp_path):
+    """One job's directory is held by another live process: that job fails, the other runs,
+    the sweep exits 1 with a table of the failed job, and a re-run retries it."""
+    by_seed = "hydra.sweep.subdir=seed${seed}"
+    seed0, seed1 = tmp_path / "sweep" / "seed0", tmp_path / "sweep" / "seed1"
+    holder = subprocess.Popen(["sleep", "300"])
+    try:
+        seed0.mkdir(parents=True)
+        lock = {"pid": holder.pid, "host": socket.gethostname(), "started": "earlier"}
+        (seed0 / ".lock").write_text(json.dumps(lock))
+        first = sweep(tmp_path, "seed=0,1", by_seed)
+        assert first.returncode == 1, first.stderr[-2000:]
+        assert "1 of 2 jobs failed" in first.stderr and f"pid {holder.pid}" in first.stderr
+        assert len(pd.read_csv(seed1 / "epochs.csv")) == 1  # the other job went on
+        assert sorted(p.name for p in seed0.iterdir()) == [".lock"]  # the held one: untouched
+    finally:
+        holder.kill()
+        holder.wait()
+    retry = sweep(tmp_path, "seed=0,1", by_seed)  # the holder is gone: its lock is taken over
+    assert retry.returncode == 0, retry.stderr[-2000:]
+    assert "already finished" in retry.stdout and "is gone" in retry.stderr
+    assert len(pd.read_csv(seed0 / "epochs.csv")) == 1 and not (seed0 / ".lock").exists()
 
 
 def test_group_by_seed_makes_one_job_per_population():

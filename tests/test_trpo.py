@@ -11,14 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
-from hmepol_cli.config import ConfigError
 from hmepol_cli.envs.base import Box, NavigationWorld
-from hmepol_cli.finetune import FINETUNE_CSV, finetune, trpo_settings
+from hmepol_cli.errors import ConfigError
+from hmepol_cli.finetune.runner import finetune, trpo_settings
 from hmepol_cli.finetune.task import GoalTask, draw_target, make_tasks
 from hmepol_cli.finetune.trpo import (
     TRPO,
     TRPOSettings,
-    collect_goal,
     conjugate_gradient,
     fisher_vector_product,
     gaussian_kl,
@@ -28,6 +27,16 @@ from hmepol_cli.finetune.trpo import (
 )
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
+from hmepol_cli.rollout import collect_episodes
+from hmepol_cli.rundir import (
+    CHECKPOINT,
+    CONFIG,
+    FINETUNE_CSV,
+    RUN_INFO,
+    atomic_write_text,
+    save_checkpoint,
+    write_json,
+)
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 REQUIRED_COLUMNS = [
@@ -106,7 +115,7 @@ def test_fisher_vector_product_is_the_kl_hessian(make, bptt):
     world = OpenWorld().to("cpu", torch.float64)
     policy = make(dtype=torch.float64)
     task = GoalTask(NEAR_TARGET, 0, horizon=6)
-    rollout = collect_goal(world, policy, task, 5, torch.Generator().manual_seed(1))
+    rollout = collect_episodes(world, policy, task, 5, torch.Generator().manual_seed(1))
     names = [n for n, _ in policy.named_parameters()]
     params = [p for _, p in policy.named_parameters()]
     module = _KL(policy, rollout, bptt)
@@ -183,7 +192,7 @@ def test_a_trpo_update_stays_in_the_trust_region_on_the_stored_trajectories(make
     settings = tiny_settings(max_kl=0.01, fisher_fraction=fisher_fraction)
     trpo = TRPO(policy, world, task.horizon, settings, gen)
     for _ in range(3):
-        rollout = collect_goal(world, policy, task, 16, gen)
+        rollout = collect_episodes(world, policy, task, 16, gen)
         before = get_flat(list(policy.parameters()))
         stats = trpo.update(rollout)
         with torch.no_grad():
@@ -198,7 +207,7 @@ def test_a_trpo_update_stays_in_the_trust_region_on_the_stored_trajectories(make
 def test_an_episode_ends_on_entering_the_target_with_reward_one():
     world = OpenWorld()
     task = GoalTask(NEAR_TARGET, 0, horizon=40)
-    rollout = collect_goal(world, tiny_markov(), task, 64, torch.Generator().manual_seed(0))
+    rollout = collect_episodes(world, tiny_markov(), task, 64, torch.Generator().manual_seed(0))
     assert set(rollout.returns.tolist()) <= {0.0, 1.0}
     assert torch.equal(rollout.returns.bool(), rollout.succeeded)
     assert 0 < rollout.succeeded.sum() < 64  # the tiny task is neither trivial nor hopeless
@@ -238,7 +247,7 @@ def test_trpo_from_scratch_raises_the_return_on_a_tiny_goal_task():
     trpo = TRPO(policy, world, task.horizon, tiny_settings(), gen)
     returns = []
     for _ in range(14):
-        rollout = collect_goal(world, policy, task, 32, gen)
+        rollout = collect_episodes(world, policy, task, 32, gen)
         returns.append(float(rollout.returns.mean()))
         trpo.update(rollout)
     before, after = sum(returns[:2]) / 2, sum(returns[-2:]) / 2
@@ -250,7 +259,7 @@ def test_a_recursive_policy_carries_its_history_through_the_episode_and_fine_tun
     task = GoalTask(NEAR_TARGET, 0, horizon=25)
     policy = tiny_recursive()
     gen = torch.Generator().manual_seed(0)
-    rollout = collect_goal(world, policy, task, 8, gen)
+    rollout = collect_episodes(world, policy, task, 8, gen)
     # h'_{-1} = 0 at the episode start only; afterwards each step reads the previous step's h'_t.
     assert torch.equal(rollout.histories[:, 0], torch.zeros(8, policy.history_size))
     with torch.no_grad():
@@ -266,17 +275,16 @@ def test_a_recursive_policy_carries_its_history_through_the_episode_and_fine_tun
             policy, world, task.horizon, tiny_settings(bptt=bptt), torch.Generator().manual_seed(0)
         )
         for _ in range(2):
-            stats = trpo.update(collect_goal(world, policy, task, 8, gen))
+            stats = trpo.update(collect_episodes(world, policy, task, 8, gen))
             assert stats.kl <= 0.02 + 1e-6 and torch.isfinite(torch.tensor(stats.value_loss))
         assert all(torch.isfinite(p).all() for p in policy.parameters())
 
 
 # --------------------------------------------------------------------------- the run
 def _compose(*overrides: str):
-    from hydra import compose, initialize_config_dir
+    from hmepol_cli.cli import compose
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("finetune", overrides=list(overrides))
+    return compose("finetune", list(overrides))
 
 
 TINY = [
@@ -292,8 +300,6 @@ TINY = [
 
 def _fake_run(tmp_path: Path) -> Path:
     """A pre-training run directory as `hmepol train` leaves it (config, run info, checkpoint)."""
-    from hmepol_cli import checkpoint as ck
-
     run_dir = tmp_path / "pretrained"
     cfg = OmegaConf.create(
         {
@@ -303,14 +309,14 @@ def _fake_run(tmp_path: Path) -> Path:
                        "bptt": "1", "init_log_std": -0.5},
         }
     )  # fmt: skip
-    ck.atomic_write_text(run_dir / ck.RUN_CONFIG, OmegaConf.to_yaml(cfg))
-    ck.write_json(run_dir / ck.RUN_INFO, {"status": "finished", "epochs_done": 1})
+    atomic_write_text(run_dir / CONFIG, OmegaConf.to_yaml(cfg))
+    write_json(run_dir / RUN_INFO, {"status": "finished", "epochs_done": 1})
     torch.manual_seed(5)
     policy = RecursivePolicy(
         2, 2, hidden=[8], encoder_hidden=[8], history_size=4, init_log_std=-0.5
     )
     state = {"policy": policy.state_dict(), "epoch": 1, "state_dim": 2, "action_dim": 2}
-    ck.save_checkpoint(run_dir / ck.CHECKPOINT, state)
+    save_checkpoint(run_dir / CHECKPOINT, state)
     return run_dir
 
 
@@ -330,7 +336,7 @@ def test_finetune_writes_one_row_per_epoch_target_and_configuration(tmp_path):
 def test_finetune_from_a_pretrained_recursive_run(tmp_path):
     run_dir = _fake_run(tmp_path)
     cfg = _compose(
-        *TINY, f"init={run_dir}", "config=1", "bptt=full", f"output_dir={tmp_path / 'out'}"
+        *TINY, f"init={run_dir}", "config=1", "policy.bptt=full", f"output_dir={tmp_path / 'out'}"
     )
     df = pd.read_csv(finetune(cfg) / FINETUNE_CSV)
     assert len(df) == 2 * 2 and (df.config == 1).all() and (df.config_name == "north slope").all()
@@ -342,25 +348,25 @@ def test_finetune_from_a_pretrained_recursive_run(tmp_path):
     [
         ("max_kl=-1", "max_kl=-1"),
         ("gamma=1.5", "gamma=1.5"),
-        ("bptt=zero", "bptt='zero'"),
+        ("policy.bptt=zero", "policy.bptt='zero'"),
         ("goal=somewhere", "goal='somewhere'"),
         ("epochs=0", "epochs=0"),
         ("config=7", "config=7"),
-        ("env.name=moon", "env.name='moon'"),
+        ("env=moon", "moon"),
+        ("env.name=corridor", "env=corridor"),
         ("init=/no/such/run", "/no/such/run"),
         ("goal_size=5", "goal_size=5"),
     ],
 )
 def test_bad_settings_are_refused_in_one_line(tmp_path, override, message):
-    cfg = _compose(*TINY, override, f"output_dir={tmp_path}")
     with pytest.raises(ConfigError) as error:
-        finetune(cfg)
+        finetune(_compose(*TINY, override, f"output_dir={tmp_path}"))
     assert message in str(error.value) and "\n" not in str(error.value)
 
 
 def test_the_config_file_holds_the_thesis_like_defaults():
     cfg = _compose()
-    s = trpo_settings(cfg)
+    s = trpo_settings(cfg, bptt=1)
     assert (cfg.init, cfg.goal, cfg.targets, cfg.horizon, cfg.epochs) == (
         "none",
         "random",
@@ -369,4 +375,4 @@ def test_the_config_file_holds_the_thesis_like_defaults():
         50,
     )
     assert (s.max_kl, s.cg_iters, s.bptt, cfg.policy.name) == (0.01, 10, 1, "markov")
-    assert cfg.env.name is None and cfg.config is None
+    assert cfg.env is None and cfg.config is None and cfg.policy.bptt is None

@@ -41,8 +41,8 @@ import torch
 from torch import nn
 
 from hmepol_cli.envs.base import Box, NavigationWorld
-from hmepol_cli.finetune.task import GoalTask
 from hmepol_cli.policies.base import Policy, mlp
+from hmepol_cli.rollout import Rollout
 
 
 @dataclass
@@ -52,8 +52,8 @@ class TRPOSettings:
     max_kl: float = 0.01  # delta, the trust region's KL bound
     cg_iters: int = 10
     damping: float = 0.1  # added to F for the conjugate-gradient solve
-    backtrack_iters: int = 10  # line-search tries (the full step is the first)
-    backtrack_coeff: float = 0.8  # step shrink factor between tries
+    line_search_steps: int = 10  # line-search tries (the full step is the first)
+    line_search_shrink: float = 0.8  # the step is multiplied by this between tries
     value_lr: float = 1e-3
     value_epochs: int = 10
     value_batch: int = 512
@@ -64,102 +64,6 @@ class TRPOSettings:
     # Fisher-vector products dominate an update's cost). The line search always checks the KL
     # on every stored trajectory, so the bound holds whatever the share.
     fisher_fraction: float = 1.0
-
-
-# --------------------------------------------------------------------------- rollout
-@dataclass
-class GoalRollout:
-    """N episodes of one goal task, stepped together; steps after an episode ended are masked."""
-
-    states: torch.Tensor  # (N, T + 1, d): s_0 .. s_T
-    actions: torch.Tensor  # (N, T, a)
-    means: torch.Tensor  # (N, T, a): mean of the sampling policy at each step
-    log_std: torch.Tensor  # (a,): log-std of the sampling policy
-    histories: torch.Tensor  # (N, T, H): h'_{t-1} read at step t (h'_{-1} = 0)
-    log_probs: torch.Tensor  # (N, T): log pi_0(a_t | h_t)
-    rewards: torch.Tensor  # (N, T)
-    alive: torch.Tensor  # (N, T) bool: step t belongs to the episode (it had not ended before t)
-    success: torch.Tensor  # (N, T) bool: the episode entered the target at step t
-    horizon: int  # T of the task (the arrays may be shorter when every episode ended early)
-
-    @property
-    def inputs(self) -> torch.Tensor:
-        """s_0 .. s_{T-1}, the states the policy acted on. (N, T, d)"""
-        return self.states[:, :-1]
-
-    def episodes(self, index: torch.Tensor) -> GoalRollout:
-        """The rollout of the episodes in ``index`` only."""
-        picked = {k: v[index] for k, v in vars(self).items() if k not in ("log_std", "horizon")}
-        return GoalRollout(**picked, log_std=self.log_std, horizon=self.horizon)
-
-    @property
-    def returns(self) -> torch.Tensor:
-        """Undiscounted return of each episode. (N,)"""
-        return (self.rewards * self.alive).sum(dim=1)
-
-    @property
-    def succeeded(self) -> torch.Tensor:
-        return self.success.any(dim=1)
-
-    @property
-    def lengths(self) -> torch.Tensor:
-        return self.alive.sum(dim=1)
-
-
-@torch.no_grad()
-def collect_goal(
-    world: NavigationWorld,
-    policy: Policy,
-    task: GoalTask,
-    n_episodes: int,
-    generator: torch.Generator | None = None,
-) -> GoalRollout:
-    """Run ``n_episodes`` episodes of ``task`` together; the history runs through each episode."""
-    n, horizon = n_episodes, task.horizon
-    device, dtype = world.device, world.dtype
-    configs = torch.full((n,), task.config, device=device, dtype=torch.long)
-    states = torch.empty(n, horizon + 1, world.state_dim, device=device, dtype=dtype)
-    actions = torch.zeros(n, horizon, world.action_dim, device=device, dtype=dtype)
-    means = torch.zeros_like(actions)
-    histories = torch.zeros(n, horizon, policy.history_size, device=device, dtype=dtype)
-    log_probs = torch.zeros(n, horizon, device=device, dtype=dtype)
-    alive = torch.zeros(n, horizon, device=device, dtype=torch.bool)
-    success = torch.zeros_like(alive)
-    log_std = policy.log_std.detach().clone()
-    std = torch.exp(log_std)
-
-    position = world.reset(configs, generator)
-    history = policy.initial_history(n, device, dtype)
-    running = torch.ones(n, device=device, dtype=torch.bool)
-    states[:, 0] = position
-    steps = horizon
-    for t in range(horizon):
-        histories[:, t] = history
-        mean, history = policy.step(position, history)  # h'_t = g(s_t, h'_{t-1})
-        noise = torch.randn(mean.shape, device=device, dtype=dtype, generator=generator)
-        action = mean + noise * std
-        log_probs[:, t] = policy.gaussian_log_prob(mean, action)
-        position = world.step(position, action, configs, generator)
-        actions[:, t], means[:, t], states[:, t + 1] = action, mean, position
-        alive[:, t] = running
-        success[:, t] = running & task.reached(position)
-        running = running & ~success[:, t]
-        if not running.any():
-            steps = t + 1
-            break
-    rewards = success.to(dtype)
-    return GoalRollout(
-        states=states[:, : steps + 1],
-        actions=actions[:, :steps],
-        means=means[:, :steps],
-        log_std=log_std,
-        histories=histories[:, :steps],
-        log_probs=log_probs[:, :steps],
-        rewards=rewards[:, :steps],
-        alive=alive[:, :steps],
-        success=success[:, :steps],
-        horizon=horizon,
-    )
 
 
 # --------------------------------------------------------------------------- value, GAE
@@ -319,7 +223,7 @@ def line_search(
 
 
 # --------------------------------------------------------------------------- the update
-def gaussian_kl(policy: Policy, rollout: GoalRollout, bptt: int | None) -> torch.Tensor:
+def gaussian_kl(policy: Policy, rollout: Rollout, bptt: int | None) -> torch.Tensor:
     """KL(pi_0(.|h_t) || pi_theta(.|h_t)) at every stored step, in closed form. (N, T)"""
     d = rollout.means.shape[-1]
     log_std_0 = rollout.log_std
@@ -333,7 +237,9 @@ def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass
-class UpdateStats:
+class TRPOStep:
+    """One TRPO update."""
+
     kl: float  # KL of the accepted step (0 when the line search restored the policy)
     accepted: bool
     tries: int
@@ -361,7 +267,7 @@ class TRPO:
         self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=settings.value_lr)
         self.params = [p for p in policy.parameters() if p.requires_grad]
 
-    def advantages(self, rollout: GoalRollout) -> tuple[torch.Tensor, torch.Tensor]:
+    def advantages(self, rollout: Rollout) -> tuple[torch.Tensor, torch.Tensor]:
         """(advantages, value targets), both (N, T)."""
         s = self.settings
         n, t_len = rollout.alive.shape
@@ -374,7 +280,8 @@ class TRPO:
         adv = gae(rollout.rewards, v[:, :-1], next_values, ends, s.gamma, s.gae_lambda)
         return adv, adv + v[:, :-1]
 
-    def update(self, rollout: GoalRollout) -> UpdateStats:
+    def update(self, rollout: Rollout) -> TRPOStep:
+        """One update from a goal-task rollout of the policy (no member dimension)."""
         s, policy = self.settings, self.policy
         mask = rollout.alive.to(rollout.rewards.dtype)
         # 1. advantages by GAE(lambda)
@@ -418,11 +325,11 @@ class TRPO:
                 evaluate,
                 base,
                 s.max_kl,
-                s.backtrack_iters,
-                s.backtrack_coeff,
+                s.line_search_steps,
+                s.line_search_shrink,
             )
         value_loss = self.fit_value(rollout, targets, mask)  # 5. the value function
-        return UpdateStats(
+        return TRPOStep(
             kl=result.kl,
             accepted=result.accepted,
             tries=result.tries,
@@ -431,7 +338,7 @@ class TRPO:
             value_loss=value_loss,
         )
 
-    def fisher_kl(self, rollout: GoalRollout) -> torch.Tensor:
+    def fisher_kl(self, rollout: Rollout) -> torch.Tensor:
         """Mean KL (with its graph) over the share ``fisher_fraction`` of the episodes."""
         n = rollout.alive.shape[0]
         keep = max(1, round(self.settings.fisher_fraction * n))
@@ -441,7 +348,7 @@ class TRPO:
         mask = rollout.alive.to(rollout.rewards.dtype)
         return masked_mean(gaussian_kl(self.policy, rollout, self.settings.bptt), mask)
 
-    def fit_value(self, rollout: GoalRollout, targets: torch.Tensor, mask: torch.Tensor) -> float:
+    def fit_value(self, rollout: Rollout, targets: torch.Tensor, mask: torch.Tensor) -> float:
         """Regress V on the lambda-returns of the live steps, in shuffled mini-batches."""
         s = self.settings
         n, t_len = mask.shape

@@ -86,14 +86,14 @@ class Policy(nn.Module):
     @torch.no_grad()
     def act(
         self, states: torch.Tensor, history: torch.Tensor, noise: torch.Tensor | None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """a_t = mean + std * noise, with noise ~ N(0, I) given (None: the mean action).
 
-        -> (actions (N, a), log pi(a_t | h_t) (N,), h'_t (N, H)).
+        -> (actions (N, a), log pi(a_t | h_t) (N,), h'_t (N, H), means (N, a)).
         """
         mean, next_history = self.step(states, history)
         actions = mean if noise is None else mean + noise * torch.exp(self.log_std)
-        return actions, self.gaussian_log_prob(mean, actions), next_history
+        return actions, self.gaussian_log_prob(mean, actions), next_history, mean
 
     def log_prob(
         self,

@@ -591,11 +591,12 @@ def finetune_returns(
 ) -> list[FigureRecord]:
     """Fine-tuning returns per epoch, per configuration, per initialisation (5.9)."""
     records = []
-    winds = sorted(frame["wind"].unique())
+    # Worlds without a wind (slope, multigrid) record none: one group for them.
+    winds = sorted(frame["wind"].dropna().unique()) + ([None] if frame["wind"].isna().any() else [])
     several = len(winds) > 1
     order = ["mepol", "alphamepol", "hmepol", "scratch"]
     for wind in winds:
-        part = frame[frame["wind"] == wind]
+        part = frame[frame["wind"].isna()] if wind is None else frame[frame["wind"] == wind]
         curves = finetune_curves(part)
         configs = sorted({c for _, c in curves})
         inits = sorted(

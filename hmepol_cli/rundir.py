@@ -1,0 +1,498 @@
+"""The run directory: the one contract between what runs write and what the report reads.
+
+A run directory holds::
+
+    config.yaml          the resolved config the run started with; never rewritten
+    run.json             kind (train | finetune), status (running | finished | failed), for a
+                         failure its reason, epoch and last finite values; epochs_done; identity
+                         (hash of the config); facts of the world; provenance; the owner
+    commands.log         one line per invocation: time, host, pid, command line
+    epochs.csv           train: one row per epoch
+    batches.csv          train: one row per mini-batch (epoch, batch, config, entropy)
+    checkpoints/last.pt  train: policy, optimizer and random state (loaded with weights_only=True)
+    eval/<name>.npz      train: positions_c<c>, (n, T + 1, 2) fresh rollouts per configuration
+    eval/<name>/*.png    train: heatmaps and trajectory plots
+    finetune.csv         finetune: one row per (epoch, configuration, target)
+    targets.json         finetune: the target areas
+    .lock                while a process writes the directory: its pid, host and start time
+
+Every file is written to a temporary name and renamed into place, so a crash leaves the old file
+or the new one, never half of one; it gets the permissions the umask gives a new file. One
+process writes a directory at a time (:class:`RunDirectory` holds its lock), and a directory
+keeps the config it started with: continuing it with another config is refused.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import io
+import json
+import math
+import os
+import platform
+import shlex
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from hmepol_cli.errors import RunDirError
+
+CONFIG = "config.yaml"
+RUN_INFO = "run.json"
+COMMANDS = "commands.log"
+EPOCHS_CSV = "epochs.csv"
+BATCHES_CSV = "batches.csv"
+FINETUNE_CSV = "finetune.csv"
+TARGETS_JSON = "targets.json"
+CHECKPOINT = Path("checkpoints") / "last.pt"
+EVAL_DIR = "eval"
+FINAL_EVAL = "final"
+LOCK = ".lock"
+TEMPORARY_SUFFIX = ".tmp"
+
+# Keys a run may change when it is continued: how long and where it runs, not what it is.
+RESUMABLE_KEYS = (
+    "epochs",
+    "device",
+    "progress",
+    "threads",
+    "eval.every",
+    "vmap",
+    "cuda_graphs",
+    "resume",
+    "skip_finished",
+    "seeds",
+)
+
+
+# ------------------------------------------------------------------------------ atomic files
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_SUFFIX)
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600: give what a new file gets
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    atomic_write_text(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    return json.loads(Path(path).read_text())
+
+
+def write_csv(path: Path, frame: pd.DataFrame) -> None:
+    buffer = io.StringIO()
+    frame.to_csv(buffer, index=False)
+    atomic_write_text(path, buffer.getvalue())
+
+
+def remove_temporaries(run_dir: Path) -> list[Path]:
+    """Delete the temporary files of writes a crash interrupted. -> what was removed"""
+    stray = [p for p in Path(run_dir).rglob(f".*{TEMPORARY_SUFFIX}") if p.is_file()]
+    for path in stray:
+        path.unlink(missing_ok=True)
+    return stray
+
+
+# ------------------------------------------------------------------------------ checkpoints
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Save tensors, state dicts and plain Python values atomically."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Load a checkpoint with ``weights_only=True``: tensors and plain containers, no code.
+
+    A file that is not one (corrupt, truncated, or holding anything but weights) is refused in
+    one line that names it."""
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:  # torch raises several unpickling and zip errors
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise RunDirError(
+            f"{path} cannot be loaded as a hmepol checkpoint ({type(error).__name__}: "
+            f"{reason[:120]})"
+        ) from None
+    if not isinstance(state, dict):
+        raise RunDirError(f"{path} is not a hmepol checkpoint (it holds a {type(state).__name__})")
+    return state
+
+
+# ------------------------------------------------------------------------------ eval files
+def save_positions(path: Path, positions: dict[int, np.ndarray]) -> None:
+    """``positions_c{c}``: (n, T + 1, 2) positions of n trajectories in configuration c."""
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{f"positions_c{c}": p for c, p in positions.items()})
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_positions(path: Path) -> dict[int, np.ndarray]:
+    with np.load(path, allow_pickle=False) as data:
+        return {
+            int(k.removeprefix("positions_c")): np.asarray(data[k], dtype=np.float32)
+            for k in data.files
+            if k.startswith("positions_c")
+        }
+
+
+# ------------------------------------------------------------------------------ reading runs
+def run_config(run_dir: Path) -> DictConfig:
+    """The config a run was started with; refuses a folder that is not a run."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunDirError(f"run directory {str(run_dir)!r} does not exist or is not a directory")
+    if not (run_dir / CONFIG).is_file() or not (run_dir / RUN_INFO).is_file():
+        raise RunDirError(
+            f"{str(run_dir)!r} is not a hmepol run directory (expected {CONFIG} and {RUN_INFO})"
+        )
+    return OmegaConf.load(run_dir / CONFIG)
+
+
+def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
+    """(run directory, checkpoint file) from either of them."""
+    path = Path(path)
+    if path.is_file():
+        run_dir = path.parent.parent if path.parent.name == CHECKPOINT.parent.name else path.parent
+        return run_dir, path
+    run_config(path)  # a clear error for a folder that is not a run
+    checkpoint = path / CHECKPOINT
+    if not checkpoint.is_file():
+        raise RunDirError(f"run directory {str(path)!r} has no checkpoint yet ({CHECKPOINT})")
+    return path, checkpoint
+
+
+def load_trained_policy(path: Path, device: str | torch.device = "cpu"):
+    """The policy of a run (directory or checkpoint file) and the run's config.
+
+    -> (Policy on ``device``, DictConfig of the run)"""
+    from hmepol_cli.policies import make_policy
+
+    run_dir, checkpoint = resolve_checkpoint(path)
+    cfg = run_config(run_dir)
+    state = load_checkpoint(checkpoint, map_location=device)
+    try:
+        policy = make_policy(cfg.policy, state["state_dim"], state["action_dim"])
+        policy.load_state_dict(state["policy"])
+    except (KeyError, RuntimeError) as error:
+        reason = str(error).splitlines()[0][:120]
+        raise RunDirError(
+            f"{checkpoint} does not hold the policy its run describes ({reason})"
+        ) from None
+    return policy.to(device), cfg
+
+
+# ------------------------------------------------------------------------------ identity
+def flat_config(cfg: DictConfig | dict) -> dict[str, Any]:
+    """{"a.b": value} of a config (resolved), lists as tuples."""
+    container = OmegaConf.to_container(cfg, resolve=True) if OmegaConf.is_config(cfg) else cfg
+
+    def walk(node: Any, prefix: str) -> dict[str, Any]:
+        if isinstance(node, dict):
+            out: dict[str, Any] = {}
+            for key, value in node.items():
+                out.update(walk(value, f"{prefix}{key}."))
+            return out
+        return {prefix[:-1]: tuple(node) if isinstance(node, list) else node}
+
+    return walk(container, "")
+
+
+def identity_of(cfg: DictConfig | dict) -> dict[str, Any]:
+    """What a run *is*: its config without the keys a continuation may change."""
+    return {
+        k: v
+        for k, v in flat_config(cfg).items()
+        if not any(k == r or k.startswith(f"{r}.") for r in RESUMABLE_KEYS)
+    }
+
+
+def identity_hash(cfg: DictConfig | dict) -> str:
+    text = json.dumps(identity_of(cfg), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def identity_differences(started: DictConfig | dict, now: DictConfig | dict) -> list[str]:
+    """``key=<started> (now <now>)`` for every key in which two configs' identities differ."""
+    a, b = identity_of(started), identity_of(now)
+    missing = object()
+    return [
+        f"{k}={a.get(k, '<absent>')!r} (now {b.get(k, '<absent>')!r})"
+        for k in sorted(set(a) | set(b))
+        if a.get(k, missing) != b.get(k, missing)
+    ]
+
+
+# ------------------------------------------------------------------------------ provenance
+def provenance(device: torch.device | str | None = None) -> dict[str, Any]:
+    """Where and with what a run is made: versions, source commit, host, threads, device."""
+    import scipy
+
+    from hmepol_cli import __version__
+
+    info: dict[str, Any] = {
+        "hmepol": __version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "host": socket.gethostname(),
+        "threads": torch.get_num_threads(),
+        "device": str(device) if device is not None else None,
+        "command": " ".join(shlex.quote(a) for a in sys.argv),
+    }
+    if device is not None and torch.device(device).type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
+    info.update(_git_state(Path(__file__).resolve().parent.parent))
+    return info
+
+
+def _git_state(source: Path) -> dict[str, Any]:
+    """The commit of the checkout the package runs from, and whether it had changes."""
+    if not (source / ".git").exists():
+        return {}
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(source), "rev-parse", "HEAD"],
+            capture_output=True, text=True, timeout=5, check=True,
+        ).stdout.strip()  # fmt: skip
+        changes = subprocess.run(
+            ["git", "-C", str(source), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, timeout=5, check=True,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    return {"git_commit": commit, "git_dirty": bool(changes)}
+
+
+def _now() -> str:
+    return datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+# ------------------------------------------------------------------------------ ownership
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+class RunLock:
+    """The lock file of a run directory: held by the one process that writes it."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.path = Path(run_dir) / LOCK
+        self.owner = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "started": _now(),
+        }
+        self.held = False
+
+    def acquire(self) -> None:
+        """Take the lock; a live holder is refused in one line, a dead one taken over."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+            except FileExistsError:
+                self._clear_stale()
+                continue
+            with os.fdopen(fd, "w") as f:
+                json.dump(self.owner, f)
+            self.held = True
+            return
+        raise RunDirError(f"could not take the lock {self.path}; is another process starting?")
+
+    def _clear_stale(self) -> None:
+        try:
+            holder = json.loads(self.path.read_text())
+            pid, host, since = int(holder["pid"]), str(holder["host"]), holder.get("started", "?")
+        except (OSError, ValueError, KeyError, TypeError):
+            # Unreadable: a holder still writing it (a moment ago) or a crash mid-write.
+            if time.time() - self.path.stat().st_mtime < 10:
+                time.sleep(1.0)
+                return
+            warnings.warn(f"taking over the unreadable lock {self.path}", stacklevel=3)
+            self.path.unlink(missing_ok=True)
+            return
+        if host != socket.gethostname():
+            raise RunDirError(
+                f"{self.path.parent} is held by pid {pid} on host {host} since {since}; if that "
+                f"process is gone, delete {self.path}"
+            )
+        if _process_alive(pid):
+            raise RunDirError(
+                f"{self.path.parent} is being written by pid {pid} on {host} since {since}; "
+                "wait for it to finish or choose another run directory"
+            )
+        warnings.warn(
+            f"taking over {self.path.parent}: its writer (pid {pid}, since {since}) is gone",
+            stacklevel=3,
+        )
+        self.path.unlink(missing_ok=True)
+
+    def release(self) -> None:
+        if not self.held:
+            return
+        try:
+            holder = json.loads(self.path.read_text())
+            if int(holder.get("pid", -1)) == os.getpid():
+                self.path.unlink()
+        except (OSError, ValueError):
+            pass
+        self.held = False
+
+
+class RunDirectory:
+    """A run directory this process writes: locked, identified, its invocations logged.
+
+    ``open()`` takes the lock, removes the temporaries of interrupted writes, refuses a config
+    that differs from the one the run started with, writes config.yaml the first time, and
+    records the invocation; ``close()`` releases the lock."""
+
+    def __init__(self, path: Path, cfg: DictConfig, kind: str = "train") -> None:
+        self.path, self.cfg, self.kind = Path(path), cfg, kind
+        self.lock = RunLock(self.path)
+
+    def open(self, device: torch.device | str | None = None) -> RunDirectory:
+        config_file = self.path / CONFIG
+        if self.path.exists() and not self.path.is_dir():
+            raise RunDirError(f"run directory {str(self.path)!r} exists and is not a directory")
+        self.lock.acquire()
+        try:
+            remove_temporaries(self.path)
+            if config_file.is_file():
+                differences = identity_differences(OmegaConf.load(config_file), self.cfg)
+                if differences:
+                    shown = "; ".join(differences[:4]) + ("; ..." if len(differences) > 4 else "")
+                    raise RunDirError(
+                        f"{self.path} was started with another config: {shown}. Continue it with "
+                        "the config it started with, or choose another run directory"
+                    )
+            else:
+                atomic_write_text(config_file, OmegaConf.to_yaml(self.cfg, resolve=True))
+            with open(self.path / COMMANDS, "a") as log:
+                os.chmod(self.path / COMMANDS, 0o666 & ~_umask())
+                log.write(
+                    f"{_now()} {socket.gethostname()} pid={os.getpid()} {provenance()['command']}\n"
+                )
+            self.update(
+                kind=self.kind,
+                status="running",
+                identity=identity_hash(self.cfg),
+                owner=self.lock.owner,
+                provenance=provenance(device),
+                failure=None,
+            )
+        except BaseException:
+            self.lock.release()
+            raise
+        return self
+
+    def info(self) -> dict[str, Any]:
+        path = self.path / RUN_INFO
+        return read_json(path) if path.is_file() else {}
+
+    def update(self, **fields: Any) -> dict[str, Any]:
+        """Rewrite run.json with ``fields`` changed (one writer: read, change, write)."""
+        info = {**self.info(), **fields}
+        write_json(self.path / RUN_INFO, info)
+        return info
+
+    def fail(self, reason: str, epoch: int | None = None, last: dict | None = None) -> None:
+        """Record that the run failed: why, at which epoch, its last finite values."""
+        self.update(
+            status="failed",
+            failure={"reason": reason, "epoch": epoch, "last_finite": last or {}, "at": _now()},
+        )
+
+    def close(self) -> None:
+        self.lock.release()
+
+    def __enter__(self) -> RunDirectory:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ------------------------------------------------------------------------------ training CSVs
+class EpochLog:
+    """epochs.csv and batches.csv of a training run, rewritten atomically every epoch.
+
+    Rows of epochs a checkpoint does not cover are dropped on resume (:meth:`truncate`), so
+    every epoch appears exactly once."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = Path(run_dir)
+        self.epochs = self._read(EPOCHS_CSV)
+        self.batches = self._read(BATCHES_CSV)
+
+    def _read(self, name: str) -> pd.DataFrame:
+        path = self.run_dir / name
+        return pd.read_csv(path) if path.is_file() else pd.DataFrame()
+
+    def truncate(self, next_epoch: int) -> None:
+        """Keep only epochs < next_epoch (the ones the checkpoint covers)."""
+        if len(self.epochs):
+            self.epochs = self.epochs[self.epochs["epoch"] < next_epoch]
+        if len(self.batches):
+            self.batches = self.batches[self.batches["epoch"] < next_epoch]
+        self._flush()
+
+    def append(self, row: dict[str, Any], batches: pd.DataFrame) -> None:
+        self.epochs = pd.concat([self.epochs, pd.DataFrame([row])], ignore_index=True)
+        self.batches = pd.concat([self.batches, batches], ignore_index=True)
+        self._flush()
+
+    def _flush(self) -> None:
+        write_csv(self.run_dir / EPOCHS_CSV, self.epochs)
+        write_csv(self.run_dir / BATCHES_CSV, self.batches)
+
+    @property
+    def last_finite(self) -> dict[str, float]:
+        """The last epoch's finite numbers (what a failure record keeps)."""
+        if not len(self.epochs):
+            return {}
+        row = self.epochs.iloc[-1]
+        return {
+            k: float(v)
+            for k, v in row.items()
+            if isinstance(v, int | float | np.number) and math.isfinite(float(v))
+        }
