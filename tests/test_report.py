@@ -42,9 +42,11 @@ def write_run(
     horizon: int = 40,
     extent: float = 1.0,
     name: str | None = None,
+    extra_config: str = "",
 ) -> Path:
     """One run directory whose entropy rises linearly to ``final`` (every configuration at
-    ``final - 0.1 * c``), so that the last-10% mean is known."""
+    ``final - 0.1 * c``), so that the last-10% mean is known. ``extra_config``: more lines of
+    its config.yaml."""
     run = root / (name or f"{env}-{algo}-wind{wind}-seed{seed}")
     (run / ".hydra").mkdir(parents=True)
     (run / "eval").mkdir()
@@ -54,7 +56,7 @@ def write_run(
         f"algo:\n  name: {algo}\n  objective: {objective}\n  alpha: {alpha}\n  lr: 1.0e-05\n"
         f"policy:\n  name: {policy}\n  bptt: '1'\n  hidden: [300, 300]\n"
         f"seed: {seed}\nepochs: {epochs}\nwind: {wind}\nresume: null\nprogress: {seed % 2 == 0}\n"
-        f"device: cpu\n"
+        f"device: cpu\n{extra_config}"
     )
     n_configs = len(config_names)
     (run / "run.json").write_text(
@@ -223,6 +225,23 @@ def test_wind_interpolation_and_top_level_wind_count_once(tmp_path):
     runs, _ = discover_runs(tmp_path)
     assert varying_keys(runs) == ["wind"]
     assert [g.wind for g in group_runs(runs)] == [0.05, 0.4]
+
+
+def test_how_a_run_was_executed_does_not_split_groups(tmp_path):
+    # Seed 0 ran inside a population on a GPU, seed 1 alone on a CPU: the same experiment.
+    write_run(
+        tmp_path,
+        seed=0,
+        extra_config="seeds: [0, 2]\nvmap: 'on'\ncuda_graphs: true\nmatmul_precision: high\n",
+    )
+    write_run(
+        tmp_path,
+        seed=1,
+        extra_config="seeds: null\nvmap: 'off'\ncuda_graphs: false\nmatmul_precision: highest\n",
+    )
+    runs, _ = discover_runs(tmp_path)
+    assert varying_keys(runs) == []
+    assert [g.seeds for g in group_runs(runs)] == [[0, 1]]
 
 
 # ------------------------------------------------------------------------- summary differences

@@ -36,6 +36,11 @@ RUN_SPECIFIC_KEYS = {
     "skip_finished",
     "checkpoint_every",
     "device",
+    # A population (seeds=[...]) and how its members were batched on the device.
+    "seeds",
+    "vmap",
+    "cuda_graphs",
+    "matmul_precision",
     "eval.every",
     # The effective wind is read once (run.json) and stored under the synthetic key "wind".
     "wind",
