@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 
 from hmepol_cli.report import SkippedRunWarning, run_report
-from hmepol_cli.report.runs import discover_runs, group_runs, varying_keys
+from hmepol_cli.report.runs import discover_runs, drop_duplicate_seeds, group_runs, varying_keys
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
 from hmepol_cli.report.summary import difference_table, final_entropy_table
 
@@ -43,10 +43,15 @@ def write_run(
     extent: float = 1.0,
     name: str | None = None,
     extra_config: str = "",
+    epochs_done: int | None = None,
+    last_wall_time: float = 1.0,
 ) -> Path:
     """One run directory whose entropy rises linearly to ``final`` (every configuration at
     ``final - 0.1 * c``), so that the last-10% mean is known. ``extra_config``: more lines of
-    its config.yaml."""
+    its config.yaml; ``epochs_done``: epochs written (rows, run.json) when not ``epochs``, as
+    in a run resumed for longer; ``last_wall_time``: when its last epoch ended (one second an
+    epoch)."""
+    done = epochs if epochs_done is None else epochs_done
     run = root / (name or f"{env}-{algo}-wind{wind}-seed{seed}")
     (run / ".hydra").mkdir(parents=True)
     (run / "eval").mkdir()
@@ -63,7 +68,7 @@ def write_run(
         json.dumps(
             {
                 "status": status,
-                "epochs_done": epochs if status == "finished" else epochs // 2,
+                "epochs_done": done if status == "finished" else done // 2,
                 "env": env,
                 "algo": algo,
                 "policy": policy,
@@ -76,8 +81,8 @@ def write_run(
             }
         )
     )
-    ramp = np.linspace(0.0, 1.0, epochs)
-    table = {"epoch": np.arange(epochs), "entropy": final * ramp, "objective": final * ramp}
+    ramp = np.linspace(0.0, 1.0, done)
+    table = {"epoch": np.arange(done), "entropy": final * ramp, "objective": final * ramp}
     for c in range(n_configs):
         table[f"entropy_c{c}"] = (final - 0.1 * c) * ramp
     table |= {
@@ -87,7 +92,7 @@ def write_run(
         "backtracks": 0,
         "lr": 1e-5,
         "seconds": 1.0,
-        "wall_time": 1.0,
+        "wall_time": last_wall_time - np.arange(done)[::-1],
     }
     pd.DataFrame(table).to_csv(run / "epochs.csv", index=False)
     rng = np.random.default_rng(seed)
@@ -242,6 +247,41 @@ def test_how_a_run_was_executed_does_not_split_groups(tmp_path):
     runs, _ = discover_runs(tmp_path)
     assert varying_keys(runs) == []
     assert [g.seeds for g in group_runs(runs)] == [[0, 1]]
+
+
+def _skip_warnings(caught) -> list[str]:
+    return [str(w.message) for w in caught if issubclass(w.category, SkippedRunWarning)]
+
+
+def test_duplicate_seed_keeps_the_run_with_most_epochs_and_names_both(tmp_path):
+    # Seed 0 twice with the same settings: a copy taken at 20 epochs, and the original resumed
+    # to 40. The copy sorts first; the resumed run is the one to keep.
+    copy = write_run(tmp_path, seed=0, epochs=20, name="a-copy", last_wall_time=2e9)
+    resumed = write_run(tmp_path, seed=0, epochs=20, epochs_done=40, name="b-resumed")
+    write_run(tmp_path, seed=1, epochs=20)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        runs, left_out = drop_duplicate_seeds(discover_runs(tmp_path)[0])
+    [message] = _skip_warnings(caught)
+    assert str(copy) in message and str(resumed) in message
+    assert [s.path for s in left_out] == [copy]
+    [group] = group_runs(runs)
+    assert group.seeds == [0, 1]
+    assert next(r for r in group.runs if r.seed == 0).path == resumed
+    # The resumed run's curve alone: the mean of its last 4 of 40 points i/39 is 37.5/39.
+    assert group.finals()[0] == pytest.approx(37.5 / 39)
+
+
+def test_duplicate_seed_with_as_many_epochs_keeps_the_later_one(tmp_path):
+    earlier = write_run(tmp_path, seed=3, name="a-earlier", last_wall_time=1.7e9)
+    later = write_run(tmp_path, seed=3, name="b-later", last_wall_time=1.8e9)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        runs, left_out = drop_duplicate_seeds(discover_runs(tmp_path)[0])
+    assert [r.path for r in runs] == [later]
+    assert [s.path for s in left_out] == [earlier]
+    [message] = _skip_warnings(caught)
+    assert str(earlier) in message and str(later) in message
 
 
 # ------------------------------------------------------------------------- summary differences

@@ -11,7 +11,12 @@ from pathlib import Path
 from hmepol_cli.report.figures import make_figures
 from hmepol_cli.report.html import write_index
 from hmepol_cli.report.plots import save_run_plots
-from hmepol_cli.report.runs import SkippedRunWarning, discover_runs, group_runs
+from hmepol_cli.report.runs import (
+    SkippedRunWarning,
+    discover_runs,
+    drop_duplicate_seeds,
+    group_runs,
+)
 from hmepol_cli.report.summary import write_summary
 
 
@@ -28,6 +33,8 @@ def run_report(runs_root: Path, out_dir: Path) -> Path:
     runs, skipped = discover_runs(runs_root)
     if not runs and not skipped:
         raise ValueError(f"no runs under {str(runs_root)!r} (no directory holds a run.json)")
+    runs, duplicates = drop_duplicate_seeds(runs)
+    skipped += duplicates
     groups = group_runs(runs)
     finetune_runs = [r for r in runs if r.finetune is not None]
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -15,6 +15,7 @@ listed, with the reason, in the report; the rest of the report is still built.
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import math
 import warnings
@@ -156,6 +157,22 @@ class Run:
     def final_entropy(self, config: int | None = None) -> float:
         """Mean entropy over the last 10% of epochs (nats): average (None) or one configuration."""
         return final_value(self.entropy_curve(config).to_numpy())
+
+    @property
+    def progress(self) -> tuple[int, int, float]:
+        """How far the run got, to choose between two copies of one seed: epochs done (run.json),
+        rows in epochs.csv, and the wall_time of its last epoch (the latest wins a tie)."""
+        try:
+            declared = int(self.meta.get("epochs_done", 0))
+        except (TypeError, ValueError):
+            declared = 0
+        if self.epochs is None:
+            return declared, 0, -math.inf
+        wall_time = -math.inf
+        if "wall_time" in self.epochs:
+            last = pd.to_numeric(self.epochs["wall_time"], errors="coerce").iloc[-1]
+            wall_time = float(last) if np.isfinite(last) else -math.inf
+        return declared, len(self.epochs), wall_time
 
 
 @dataclass
@@ -393,20 +410,66 @@ def _algo_rank(algo: str) -> tuple[int, str]:
     return (ALGO_ORDER.index(algo) if algo in ALGO_ORDER else len(ALGO_ORDER), algo)
 
 
+def _settings(run: Run, keys: list[str]) -> tuple[tuple[str, Any], ...]:
+    return tuple((k, run.wind if k == "wind" else run.config.get(k)) for k in keys)
+
+
+def _progress_text(run: Run) -> str:
+    declared, rows, wall_time = run.progress
+    text = f"{declared} epochs done" + (f" ({rows} rows in epochs.csv)" if rows != declared else "")
+    if np.isfinite(wall_time):
+        ended = dt.datetime.fromtimestamp(wall_time).isoformat(sep=" ", timespec="seconds")
+        text += f", last epoch ended {ended}"
+    return text
+
+
+def drop_duplicate_seeds(runs: list[Run]) -> tuple[list[Run], list[SkippedRun]]:
+    """Keep one pre-training run per (settings, seed): the one that got furthest (``Run.progress``).
+
+    Two directories with the same settings and seed are the same run twice (a copy, a run made
+    again); averaging both would count that seed twice. Each copy left out is skipped with a
+    warning naming it and the run kept in its place.
+    """
+    pretraining = [r for r in runs if r.is_pretraining]
+    keys = varying_keys(pretraining)
+    copies: dict[tuple, list[Run]] = {}
+    for run in sorted(pretraining, key=lambda r: str(r.path)):
+        copies.setdefault((_settings(run, keys), run.seed), []).append(run)
+    left_out: list[SkippedRun] = []
+    for same in copies.values():
+        # max keeps the first in path order among equals: the choice does not depend on discovery.
+        kept = max(same, key=lambda r: r.progress)
+        for run in same:
+            if run is kept:
+                continue
+            reason = (
+                f"same settings and seed {run.seed} as {kept.path}, which is kept "
+                f"({_progress_text(kept)}; this one: {_progress_text(run)})"
+            )
+            left_out.append(SkippedRun(run.path, reason))
+            warnings.warn(f"skipping run {run.path}: {reason}", SkippedRunWarning, stacklevel=2)
+    dropped = {s.path for s in left_out}
+    return [r for r in runs if r.path not in dropped], left_out
+
+
 def group_runs(runs: list[Run]) -> list[Group]:
     """Split pre-training runs into groups that differ only by seed, ordered env, wind, algo.
 
-    Within a group every seed appears once; a repeated seed (the same run twice) keeps the
-    first directory in sorted order.
+    Every seed of a group must appear once: pass the runs through :func:`drop_duplicate_seeds`.
     """
     runs = [r for r in runs if r.is_pretraining]
     keys = varying_keys(runs)
     groups: dict[tuple, Group] = {}
     for run in sorted(runs, key=lambda r: str(r.path)):
-        key = tuple((k, run.wind if k == "wind" else run.config.get(k)) for k in keys)
+        key = _settings(run, keys)
         group = groups.setdefault(key, Group(key=key))
-        if run.seed not in {r.seed for r in group.runs}:
-            group.runs.append(run)
+        twin = next((r for r in group.runs if r.seed == run.seed), None)
+        if twin is not None:
+            raise ValueError(
+                f"{run.path} and {twin.path} are seed {run.seed} of the same settings "
+                "(drop_duplicate_seeds keeps one)"
+            )
+        group.runs.append(run)
     ordered = sorted(
         groups.values(),
         # Within an algorithm the group with most seeds (the main experiment) comes first.
