@@ -9,6 +9,7 @@ from __future__ import annotations
 import html
 import json
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -106,6 +107,25 @@ def write_run(
         **{f"positions_c{c}": positions[c].astype(np.float32) for c in range(n_configs)},
     )
     return run
+
+
+def write_batches(run: Path, drawn: dict[int, tuple[int, ...]]) -> None:
+    """batches.csv of a run: one mini-batch of each configuration ``drawn[epoch]`` holds."""
+    rows = [
+        {"epoch": epoch, "batch": b, "config": config, "entropy": 0.5}
+        for epoch, configs in drawn.items()
+        for b, config in enumerate(configs)
+    ]
+    pd.DataFrame(rows).to_csv(run / "batches.csv", index=False)
+
+
+def set_field(text: str, line: int, column: str, value: str) -> str:
+    """epochs.csv text with one field (line numbered from 1, the header's) set to ``value``."""
+    lines = text.splitlines()
+    fields = lines[line - 1].split(",")
+    fields[lines[0].split(",").index(column)] = value
+    lines[line - 1] = ",".join(fields)
+    return "\n".join(lines) + "\n"
 
 
 def write_finetune_run(
@@ -358,6 +378,69 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     hm = finetune[(finetune["init"] == "HMepol") & (finetune["config"] == 0)].iloc[0]
     assert hm["n_curves"] == 6 and hm["first_epoch_reaching_mepol_final"] < 9
     assert (out / "summary.md").read_text().count("HMepol − Mepol") == 3
+
+
+# Configuration 0 drawn every epoch, configuration 1 in even epochs only (of 20).
+EVEN_EPOCHS_DRAW_BOTH = {e: (0, 1) if e % 2 == 0 else (0,) for e in range(20)}
+
+
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (lambda text: text[:-20], "epochs.csv is cut short: its last line (21) stops mid-line"),
+        (
+            lambda text: text.replace(text.splitlines()[5], text.splitlines()[5][:9]),
+            "epochs.csv line 6 does not parse: 2 fields, the header has 12",
+        ),
+        (
+            lambda text: set_field(text, 6, "entropy", "0.2.1"),
+            "epochs.csv line 6 does not parse: entropy='0.2.1' is not a number",
+        ),
+        (lambda text: set_field(text, 6, "entropy", ""), "line 6: entropy=nan is not a finite"),
+        (lambda text: set_field(text, 6, "entropy", "inf"), "line 6: entropy=inf is not a finite"),
+        (
+            lambda text: set_field(text, 7, "entropy_c0", "-inf"),
+            "line 7: entropy_c0=-inf is not a finite number",
+        ),
+        (
+            lambda text: set_field(text, 5, "entropy_c1", ""),
+            "line 5: entropy_c1=nan in epoch 3, which drew configuration 1",
+        ),
+    ],
+    ids=["last-line-cut", "short-row", "not-a-number", "nan", "inf", "inf-config", "nan-drawn"],
+)
+def test_report_skips_a_run_with_a_malformed_row_and_says_why(tmp_path, damage, reason):
+    root = tmp_path / "runs"
+    for seed in (0, 1):
+        write_batches(write_run(root, seed=seed), EVEN_EPOCHS_DRAW_BOTH)
+    damaged = write_run(root, seed=2, name="damaged")
+    # Epoch 3 (line 5) drew configuration 1 here.
+    write_batches(damaged, EVEN_EPOCHS_DRAW_BOTH | {3: (0, 1)})
+    epochs_csv = damaged / "epochs.csv"
+    epochs_csv.write_text(damage(epochs_csv.read_text()))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        index = run_report(root, tmp_path / "report")
+    [message] = _skip_warnings(caught)
+    assert message.startswith(f"skipping run {damaged}: ") and reason in message
+    listed = re.search(r"<code>damaged</code>: ([^<]*)</li>", index.read_text())
+    assert listed and reason in html.unescape(listed[1])
+    # The rest of the report is built from the two sound runs.
+    summary = pd.read_csv(tmp_path / "report" / "summary.csv")
+    assert set(summary["seeds"]) == {"0 1"}
+
+
+def test_a_configuration_not_drawn_in_an_epoch_is_not_malformed(tmp_path):
+    run = write_run(tmp_path, epochs=20)
+    write_batches(run, EVEN_EPOCHS_DRAW_BOTH)
+    text = (run / "epochs.csv").read_text()
+    for epoch in range(1, 20, 2):  # line epoch + 2
+        text = set_field(text, epoch + 2, "entropy_c1", "")
+    (run / "epochs.csv").write_text(text)
+    [loaded], skipped = discover_runs(tmp_path)
+    assert skipped == []
+    # Observed at even epochs only: the last 10% of those 10 values is epoch 18's, 0.9 * 18 / 19.
+    assert loaded.final_entropy(1) == pytest.approx(0.9 * 18 / 19)
 
 
 def test_report_refuses_missing_or_empty_root(tmp_path):
