@@ -443,6 +443,30 @@ def test_a_configuration_not_drawn_in_an_epoch_is_not_malformed(tmp_path):
     assert loaded.final_entropy(1) == pytest.approx(0.9 * 18 / 19)
 
 
+def test_counts_on_stdout_and_in_the_page_are_the_runs_actually_used(tmp_path, capsys):
+    root = tmp_path / "runs"
+    for algo in ("mepol", "hmepol"):
+        for seed in (0, 1):
+            write_run(root, algo=algo, seed=seed)
+    # A copy of hmepol seed 1 taken half-way: left out.
+    write_run(root, algo="hmepol", seed=1, epochs_done=10, name="hmepol-seed1-copy")
+    write_run(root, algo="mepol", seed=5, status="running", name="unfinished")
+    write_finetune_run(root, algo_init="mepol", seed=0)
+    write_finetune_run(root, algo_init="scratch", seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkippedRunWarning)
+        index = run_report(root, tmp_path / "report")
+    # 4 pre-training seeds + 2 fine-tuning runs; 2 groups; the copy and the unfinished run
+    # skipped; curves, curves per configuration, bars, heatmaps, 2 x trajectories, fine-tuning.
+    expected = "6 runs used (2 groups), 2 skipped, 7 figures"
+    assert capsys.readouterr().out == f"report: {expected} -> {index}\n"
+    page = index.read_text()
+    assert expected in page
+    assert "(4 pre-training runs in 2 groups, 2 fine-tuning runs)" in page
+    assert page.count("<figure>") == 7 == len(list((tmp_path / "report" / "figures").iterdir()))
+    assert re.findall(r"<li><code>([^<]*)</code>", page) == ["hmepol-seed1-copy", "unfinished"]
+
+
 def test_report_refuses_missing_or_empty_root(tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         run_report(tmp_path / "nowhere", tmp_path / "out")

@@ -17,7 +17,7 @@ from hmepol_cli.report.runs import (
     drop_duplicate_seeds,
     group_runs,
 )
-from hmepol_cli.report.summary import write_summary
+from hmepol_cli.report.summary import ReportCounts, write_summary
 
 
 def run_report(runs_root: Path, out_dir: Path) -> Path:
@@ -34,17 +34,21 @@ def run_report(runs_root: Path, out_dir: Path) -> Path:
     if not runs and not skipped:
         raise ValueError(f"no runs under {str(runs_root)!r} (no directory holds a run.json)")
     runs, duplicates = drop_duplicate_seeds(runs)
-    skipped += duplicates
+    skipped = sorted(skipped + duplicates, key=lambda s: str(s.path))
     groups = group_runs(runs)
     finetune_runs = [r for r in runs if r.finetune is not None]
     out_dir.mkdir(parents=True, exist_ok=True)
     figures = make_figures(groups, finetune_runs, out_dir / "figures")
     tables = write_summary(groups, finetune_runs, out_dir)
-    index = write_index(out_dir, runs_root, groups, finetune_runs, skipped, figures, tables)
-    print(
-        f"report: {len(runs)} runs used ({len(groups)} groups), {len(skipped)} skipped, "
-        f"{len(figures)} figures -> {index}"
+    counts = ReportCounts(
+        pretraining_runs=sum(len(g.runs) for g in groups),
+        finetune_runs=len(finetune_runs),
+        groups=len(groups),
+        skipped=len(skipped),
+        figures=len(figures),
     )
+    index = write_index(out_dir, runs_root, groups, finetune_runs, skipped, figures, tables, counts)
+    print(f"report: {counts.text()} -> {index}")
     return index
 
 

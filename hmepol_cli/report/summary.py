@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,27 @@ import pandas as pd
 from hmepol_cli.report.figures import average_bound, finetune_curves, finetune_frame
 from hmepol_cli.report.runs import Group, Run, algo_label
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
+
+
+@dataclass(frozen=True)
+class ReportCounts:
+    """What one report holds, counted once for both the command's last line and index.html."""
+
+    pretraining_runs: int  # in the groups, one per seed
+    finetune_runs: int
+    groups: int
+    skipped: int
+    figures: int
+
+    @property
+    def runs_used(self) -> int:
+        return self.pretraining_runs + self.finetune_runs
+
+    def text(self) -> str:
+        return (
+            f"{self.runs_used} runs used ({self.groups} groups), {self.skipped} skipped, "
+            f"{self.figures} figures"
+        )
 
 
 def _config_rows(group: Group) -> list[tuple[int | None, str]]:
