@@ -10,6 +10,7 @@ import html
 import json
 import math
 import re
+import shutil
 import warnings
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from hmepol_cli.cli import main
 from hmepol_cli.report import SkippedRunWarning, run_report
 from hmepol_cli.report.runs import discover_runs, drop_duplicate_seeds, group_runs, varying_keys
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
@@ -465,6 +467,55 @@ def test_counts_on_stdout_and_in_the_page_are_the_runs_actually_used(tmp_path, c
     assert "(4 pre-training runs in 2 groups, 2 fine-tuning runs)" in page
     assert page.count("<figure>") == 7 == len(list((tmp_path / "report" / "figures").iterdir()))
     assert re.findall(r"<li><code>([^<]*)</code>", page) == ["hmepol-seed1-copy", "unfinished"]
+
+
+def test_a_new_report_replaces_the_files_of_the_earlier_one_and_nothing_else(tmp_path):
+    root, out = tmp_path / "runs", tmp_path / "report"
+    for algo in ("mepol", "hmepol"):
+        write_run(root, algo=algo, seed=0, name=f"{algo}-0")
+    write_finetune_run(root, algo_init="hmepol", seed=0)
+    run_report(root, out)
+    (out / "notes.txt").write_text("mine")
+    (out / "figures" / "sketch.png").write_bytes(b"mine too")
+    # The HMepol runs are gone: their trajectories and the fine-tuning figure and table go too.
+    shutil.rmtree(root / "hmepol-0")
+    shutil.rmtree(root / "finetune-hmepol-seed0")
+    index = run_report(root, out)
+    report_files = {
+        "figures/slope_entropy_epochs.png",
+        "figures/slope_entropy_epochs_by_config.png",
+        "figures/slope_final_entropy_bars.png",
+        "figures/slope_heatmaps.png",
+        "figures/slope_trajectories_mepol.png",
+        "index.html",
+        "summary.csv",
+        "summary.md",  # one group left: no differences.csv
+    }
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    assert on_disk == report_files | {"report.json", "notes.txt", "figures/sketch.png"}
+    assert set(json.loads((out / "report.json").read_text())["files"]) == report_files
+    assert "finetune.csv" not in index.read_text()  # no link to a table that is gone
+
+
+def test_report_refuses_a_folder_it_did_not_write(tmp_path, capsys):
+    root, out = tmp_path / "runs", tmp_path / "thesis"
+    write_run(root)
+    out.mkdir()
+    (out / "chapter1.tex").write_text("\\chapter{Introduction}")
+    with pytest.raises(SystemExit):
+        main(["report", str(root), "--out", str(out)])
+    [line] = capsys.readouterr().err.splitlines()
+    assert line.startswith("hmepol: error: report folder ") and repr(str(out)) in line
+    assert [p.name for p in out.iterdir()] == ["chapter1.tex"]
+    # An empty folder is a fine place for a report.
+    (out / "chapter1.tex").unlink()
+    assert run_report(root, out).exists()
+    # A manifest that lists a file outside its folder was not written by a report.
+    run_json = next(root.rglob("run.json"))
+    (out / "report.json").write_text(json.dumps({"files": [f"../runs/{run_json.parent.name}"]}))
+    with pytest.raises(ValueError, match="is not a report manifest"):
+        run_report(root, out)
+    assert run_json.exists()
 
 
 def test_report_refuses_missing_or_empty_root(tmp_path):

@@ -66,9 +66,10 @@ def write_index(
     skipped: list[SkippedRun],
     figures: list[FigureRecord],
     tables: dict[str, pd.DataFrame],
+    table_files: list[Path],
     counts: ReportCounts,
 ) -> Path:
-    """Write ``out_dir/index.html`` and return its path."""
+    """Write ``out_dir/index.html`` (linking ``table_files``) and return its path."""
     out_dir = Path(out_dir)
     e = html.escape
     parts = [
@@ -147,11 +148,7 @@ def write_index(
             "reaches the final mean return of the Mepol-initialised run.</p>"
         )
         parts.append(_table(finetune))
-    links = [
-        n
-        for n in ("summary.csv", "differences.csv", "finetune.csv", "summary.md")
-        if (out_dir / n).exists()
-    ]
+    links = [e(_relative(path, out_dir)) for path in table_files]
     parts.append(
         "<p>Tables as files: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>"
     )
