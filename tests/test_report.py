@@ -48,9 +48,11 @@ def write_run(
     extra_config: str = "",
     epochs_done: int | None = None,
     last_wall_time: float = 1.0,
+    config_finals: tuple[float, ...] | None = None,
 ) -> Path:
-    """One run directory whose entropy rises linearly to ``final`` (every configuration at
-    ``final - 0.1 * c``), so that the last-10% mean is known. ``extra_config``: more lines of
+    """One run directory whose entropy rises linearly to ``final`` (configuration c to
+    ``config_finals[c]``, by default ``final - 0.1 * c``), so that the last-10% mean is known.
+    ``extra_config``: more lines of
     its config.yaml; ``epochs_done``: epochs written (rows, run.json) when not ``epochs``, as
     in a run resumed for longer; ``last_wall_time``: when its last epoch ended (one second an
     epoch)."""
@@ -86,8 +88,10 @@ def write_run(
     )
     ramp = np.linspace(0.0, 1.0, done)
     table = {"epoch": np.arange(done), "entropy": final * ramp, "objective": final * ramp}
+    if config_finals is None:
+        config_finals = tuple(final - 0.1 * c for c in range(n_configs))
     for c in range(n_configs):
-        table[f"entropy_c{c}"] = (final - 0.1 * c) * ramp
+        table[f"entropy_c{c}"] = config_finals[c] * ramp
     table |= {
         "entropy_iw": final * ramp,
         "kl": 0.1,
@@ -538,6 +542,71 @@ def test_save_run_plots_writes_heatmap_and_trajectories(tmp_path):
     paths = save_run_plots(world, positions, tmp_path / "eval")
     assert sorted(p.name for p in paths) == ["heatmap.png", "trajectories.png"]
     assert all(p.stat().st_size > 1000 for p in paths)
+
+
+@pytest.fixture()
+def drawn_figures(monkeypatch) -> dict[str, object]:
+    """The figures the report saves, by file name, to look at their axes."""
+    from hmepol_cli.report import figures
+
+    drawn: dict[str, object] = {}
+
+    def save_and_keep(fig, path):
+        drawn[Path(path).name] = fig
+        return save(fig, path)
+
+    save = figures.save
+    monkeypatch.setattr(figures, "save", save_and_keep)
+    return drawn
+
+
+def _panels(fig) -> list:
+    return [ax for ax in fig.axes if ax.get_lines()]
+
+
+def _line_values(ax) -> np.ndarray:
+    values = np.concatenate([np.asarray(line.get_ydata(), float) for line in ax.get_lines()])
+    return values[np.isfinite(values)]
+
+
+def test_every_entropy_panel_shows_its_whole_curve(tmp_path, drawn_figures):
+    # Configuration 0 ends at 10 nats, configuration 1 at 1: on one shared scale set by the last
+    # panel, the first curve would leave its axes. The two winds differ likewise.
+    write_run(tmp_path / "runs", wind=0.05, final=10.0, config_finals=(10.0, 1.0))
+    write_run(tmp_path / "runs", wind=0.4, final=1.0, config_finals=(10.0, 1.0))
+    run_report(tmp_path / "runs", tmp_path / "report")
+    by_config = _panels(drawn_figures["slope_entropy_epochs_by_config.png"])
+    assert [ax.get_title() for ax in by_config] == [
+        "config 0: south, wind 0.05",
+        "config 1: north, wind 0.05",
+        "config 0: south, wind 0.4",
+        "config 1: north, wind 0.4",
+    ]
+    average = _panels(drawn_figures["slope_entropy_epochs.png"])
+    for ax in by_config + average:
+        low, high = ax.get_ylim()
+        values = _line_values(ax)
+        assert low < values.min() and values.max() < high, ax.get_title()
+    for ax in by_config[1::2]:  # configuration 1: its own scale, 0 to log(3.04) = 1.11
+        assert ax.get_ylim()[1] < 2.0
+    for ax in drawn_figures["slope_final_entropy_bars.png"].axes:
+        low, high = ax.get_ylim()
+        assert all(low <= bar.get_height() <= high for bar in ax.patches), ax.get_title()
+
+
+def test_a_run_of_one_epoch_is_drawn_as_a_point(tmp_path, drawn_figures):
+    for seed in (0, 1):
+        write_run(tmp_path / "runs", seed=seed, epochs=1)  # entropy 0 at epoch 0
+    run_report(tmp_path / "runs", tmp_path / "report")
+    for name in ("slope_entropy_epochs.png", "slope_entropy_epochs_by_config.png"):
+        for ax in _panels(drawn_figures[name]):
+            markers = [
+                line
+                for line in ax.get_lines()
+                if line.get_marker() not in ("None", "", " ") and line.get_markersize() > 0
+            ]
+            points = [(x, y) for line in markers for x, y in line.get_xydata()]
+            assert points == [(0.0, 0.0)], (name, ax.get_title())
 
 
 def test_figure_names_of_long_labels_stay_short_and_distinct():
