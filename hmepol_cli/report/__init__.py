@@ -52,9 +52,7 @@ def run_report(runs_root: Path, out_dir: Path) -> Path:
         skipped=len(skipped),
         figures=len(figures),
     )
-    index = write_index(
-        out_dir, runs_root, groups, finetune_runs, skipped, figures, tables, table_files, counts
-    )
+    index = write_index(out_dir, runs_root, groups, skipped, figures, tables, table_files, counts)
     write_manifest(out_dir, [f.path for f in figures] + table_files + [index], previous)
     print(f"report: {counts.text()} -> {index}")
     return index

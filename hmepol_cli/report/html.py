@@ -11,7 +11,7 @@ from pathlib import Path
 import pandas as pd
 
 from hmepol_cli.report.figures import FigureRecord
-from hmepol_cli.report.runs import Group, Run, SkippedRun, format_wind
+from hmepol_cli.report.runs import Group, SkippedRun, format_wind
 from hmepol_cli.report.summary import ReportCounts, format_number
 
 STYLE = """
@@ -62,7 +62,6 @@ def write_index(
     out_dir: Path,
     runs_root: Path,
     groups: list[Group],
-    finetune_runs: list[Run],
     skipped: list[SkippedRun],
     figures: list[FigureRecord],
     tables: dict[str, pd.DataFrame],

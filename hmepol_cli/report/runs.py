@@ -172,7 +172,7 @@ class Run:
         return final_value(self.entropy_curve(config).to_numpy())
 
     @property
-    def progress(self) -> tuple[int, int, float]:
+    def completeness(self) -> tuple[int, int, float]:
         """How far the run got, to choose between two copies of one seed: epochs done (run.json),
         rows in epochs.csv, and the wall_time of its last epoch (the latest wins a tie)."""
         try:
@@ -310,6 +310,8 @@ def read_table(path: Path, required: tuple[str, ...], numeric: re.Pattern) -> pd
         header = next(reader)
     except csv.Error as err:
         raise RunError(f"{path.name} line 1 does not parse ({err})") from None
+    if len(set(header)) != len(header):
+        raise RunError(f"{path.name} is corrupt (its header names a column twice)")
     missing = [c for c in required if c not in header]
     if missing:
         raise RunError(f"{path.name} is corrupt (missing columns: {', '.join(missing)})")
@@ -522,8 +524,8 @@ def _settings(run: Run, keys: list[str]) -> tuple[tuple[str, Any], ...]:
     return tuple((k, run.wind if k == "wind" else run.config.get(k)) for k in keys)
 
 
-def _progress_text(run: Run) -> str:
-    declared, rows, wall_time = run.progress
+def _completeness_text(run: Run) -> str:
+    declared, rows, wall_time = run.completeness
     text = f"{declared} epochs done" + (f" ({rows} rows in epochs.csv)" if rows != declared else "")
     if np.isfinite(wall_time):
         ended = dt.datetime.fromtimestamp(wall_time).isoformat(sep=" ", timespec="seconds")
@@ -532,7 +534,7 @@ def _progress_text(run: Run) -> str:
 
 
 def drop_duplicate_seeds(runs: list[Run]) -> tuple[list[Run], list[SkippedRun]]:
-    """Keep one pre-training run per (settings, seed): the one that got furthest (``Run.progress``).
+    """Keep one pre-training run per (settings, seed): the most complete (``Run.completeness``).
 
     Two directories with the same settings and seed are the same run twice (a copy, a run made
     again); averaging both would count that seed twice. Each copy left out is skipped with a
@@ -546,13 +548,13 @@ def drop_duplicate_seeds(runs: list[Run]) -> tuple[list[Run], list[SkippedRun]]:
     left_out: list[SkippedRun] = []
     for same in copies.values():
         # max keeps the first in path order among equals: the choice does not depend on discovery.
-        kept = max(same, key=lambda r: r.progress)
+        kept = max(same, key=lambda r: r.completeness)
         for run in same:
             if run is kept:
                 continue
             reason = (
                 f"same settings and seed {run.seed} as {kept.path}, which is kept "
-                f"({_progress_text(kept)}; this one: {_progress_text(run)})"
+                f"({_completeness_text(kept)}; this one: {_completeness_text(run)})"
             )
             left_out.append(SkippedRun(run.path, reason))
             warnings.warn(f"skipping run {run.path}: {reason}", SkippedRunWarning, stacklevel=2)
