@@ -52,10 +52,10 @@ def write_run(
 ) -> Path:
     """One run directory whose entropy rises linearly to ``final`` (configuration c to
     ``config_finals[c]``, by default ``final - 0.1 * c``), so that the last-10% mean is known.
-    ``extra_config``: more lines of
-    its config.yaml; ``epochs_done``: epochs written (rows, run.json) when not ``epochs``, as
-    in a run resumed for longer; ``last_wall_time``: when its last epoch ended (one second an
-    epoch)."""
+
+    ``extra_config``: more lines of its config.yaml; ``epochs_done``: epochs written (rows,
+    run.json) when not ``epochs``, as in a run resumed for longer; ``last_wall_time``: when its
+    last epoch ended (one second an epoch)."""
     done = epochs if epochs_done is None else epochs_done
     run = root / (name or f"{env}-{algo}-wind{wind}-seed{seed}")
     (run / ".hydra").mkdir(parents=True)
