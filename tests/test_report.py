@@ -9,6 +9,8 @@ from __future__ import annotations
 import html
 import json
 import math
+import re
+import shutil
 import warnings
 from pathlib import Path
 
@@ -16,8 +18,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from hmepol_cli.cli import main
 from hmepol_cli.report import SkippedRunWarning, run_report
-from hmepol_cli.report.runs import discover_runs, group_runs, varying_keys
+from hmepol_cli.report.runs import discover_runs, drop_duplicate_seeds, group_runs, varying_keys
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
 from hmepol_cli.report.summary import difference_table, final_entropy_table
 
@@ -42,9 +45,18 @@ def write_run(
     horizon: int = 40,
     extent: float = 1.0,
     name: str | None = None,
+    extra_config: str = "",
+    epochs_done: int | None = None,
+    last_wall_time: float = 1.0,
+    config_finals: tuple[float, ...] | None = None,
 ) -> Path:
-    """One run directory whose entropy rises linearly to ``final`` (every configuration at
-    ``final - 0.1 * c``), so that the last-10% mean is known."""
+    """One run directory whose entropy rises linearly to ``final`` (configuration c to
+    ``config_finals[c]``, by default ``final - 0.1 * c``), so that the last-10% mean is known.
+
+    ``extra_config``: more lines of its config.yaml; ``epochs_done``: epochs written (rows,
+    run.json) when not ``epochs``, as in a run resumed for longer; ``last_wall_time``: when its
+    last epoch ended (one second an epoch)."""
+    done = epochs if epochs_done is None else epochs_done
     run = root / (name or f"{env}-{algo}-wind{wind}-seed{seed}")
     (run / ".hydra").mkdir(parents=True)
     (run / "eval").mkdir()
@@ -54,14 +66,14 @@ def write_run(
         f"algo:\n  name: {algo}\n  objective: {objective}\n  alpha: {alpha}\n  lr: 1.0e-05\n"
         f"policy:\n  name: {policy}\n  bptt: '1'\n  hidden: [300, 300]\n"
         f"seed: {seed}\nepochs: {epochs}\nwind: {wind}\nresume: null\nprogress: {seed % 2 == 0}\n"
-        f"device: cpu\n"
+        f"device: cpu\n{extra_config}"
     )
     n_configs = len(config_names)
     (run / "run.json").write_text(
         json.dumps(
             {
                 "status": status,
-                "epochs_done": epochs if status == "finished" else epochs // 2,
+                "epochs_done": done if status == "finished" else done // 2,
                 "env": env,
                 "algo": algo,
                 "policy": policy,
@@ -74,10 +86,12 @@ def write_run(
             }
         )
     )
-    ramp = np.linspace(0.0, 1.0, epochs)
-    table = {"epoch": np.arange(epochs), "entropy": final * ramp, "objective": final * ramp}
+    ramp = np.linspace(0.0, 1.0, done)
+    table = {"epoch": np.arange(done), "entropy": final * ramp, "objective": final * ramp}
+    if config_finals is None:
+        config_finals = tuple(final - 0.1 * c for c in range(n_configs))
     for c in range(n_configs):
-        table[f"entropy_c{c}"] = (final - 0.1 * c) * ramp
+        table[f"entropy_c{c}"] = config_finals[c] * ramp
     table |= {
         "entropy_iw": final * ramp,
         "kl": 0.1,
@@ -85,7 +99,7 @@ def write_run(
         "backtracks": 0,
         "lr": 1e-5,
         "seconds": 1.0,
-        "wall_time": 1.0,
+        "wall_time": last_wall_time - np.arange(done)[::-1],
     }
     pd.DataFrame(table).to_csv(run / "epochs.csv", index=False)
     rng = np.random.default_rng(seed)
@@ -99,6 +113,25 @@ def write_run(
         **{f"positions_c{c}": positions[c].astype(np.float32) for c in range(n_configs)},
     )
     return run
+
+
+def write_batches(run: Path, drawn: dict[int, tuple[int, ...]]) -> None:
+    """batches.csv of a run: one mini-batch of each configuration ``drawn[epoch]`` holds."""
+    rows = [
+        {"epoch": epoch, "batch": b, "config": config, "entropy": 0.5}
+        for epoch, configs in drawn.items()
+        for b, config in enumerate(configs)
+    ]
+    pd.DataFrame(rows).to_csv(run / "batches.csv", index=False)
+
+
+def set_field(text: str, line: int, column: str, value: str) -> str:
+    """epochs.csv text with one field (line numbered from 1, the header's) set to ``value``."""
+    lines = text.splitlines()
+    fields = lines[line - 1].split(",")
+    fields[lines[0].split(",").index(column)] = value
+    lines[line - 1] = ",".join(fields)
+    return "\n".join(lines) + "\n"
 
 
 def write_finetune_run(
@@ -225,6 +258,58 @@ def test_wind_interpolation_and_top_level_wind_count_once(tmp_path):
     assert [g.wind for g in group_runs(runs)] == [0.05, 0.4]
 
 
+def test_how_a_run_was_executed_does_not_split_groups(tmp_path):
+    # Seed 0 ran inside a population on a GPU, seed 1 alone on a CPU: the same experiment.
+    write_run(
+        tmp_path,
+        seed=0,
+        extra_config="seeds: [0, 2]\nvmap: 'on'\ncuda_graphs: true\nmatmul_precision: high\n",
+    )
+    write_run(
+        tmp_path,
+        seed=1,
+        extra_config="seeds: null\nvmap: 'off'\ncuda_graphs: false\nmatmul_precision: highest\n",
+    )
+    runs, _ = discover_runs(tmp_path)
+    assert varying_keys(runs) == []
+    assert [g.seeds for g in group_runs(runs)] == [[0, 1]]
+
+
+def _skip_warnings(caught) -> list[str]:
+    return [str(w.message) for w in caught if issubclass(w.category, SkippedRunWarning)]
+
+
+def test_duplicate_seed_keeps_the_run_with_most_epochs_and_names_both(tmp_path):
+    # Seed 0 twice with the same settings: a copy taken at 20 epochs, and the original resumed
+    # to 40. The copy sorts first; the resumed run is the one to keep.
+    copy = write_run(tmp_path, seed=0, epochs=20, name="a-copy", last_wall_time=2e9)
+    resumed = write_run(tmp_path, seed=0, epochs=20, epochs_done=40, name="b-resumed")
+    write_run(tmp_path, seed=1, epochs=20)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        runs, left_out = drop_duplicate_seeds(discover_runs(tmp_path)[0])
+    [message] = _skip_warnings(caught)
+    assert str(copy) in message and str(resumed) in message
+    assert [s.path for s in left_out] == [copy]
+    [group] = group_runs(runs)
+    assert group.seeds == [0, 1]
+    assert next(r for r in group.runs if r.seed == 0).path == resumed
+    # The resumed run's curve alone: the mean of its last 4 of 40 points i/39 is 37.5/39.
+    assert group.finals()[0] == pytest.approx(37.5 / 39)
+
+
+def test_duplicate_seed_with_as_many_epochs_keeps_the_later_one(tmp_path):
+    earlier = write_run(tmp_path, seed=3, name="a-earlier", last_wall_time=1.7e9)
+    later = write_run(tmp_path, seed=3, name="b-later", last_wall_time=1.8e9)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        runs, left_out = drop_duplicate_seeds(discover_runs(tmp_path)[0])
+    assert [r.path for r in runs] == [later]
+    assert [s.path for s in left_out] == [earlier]
+    [message] = _skip_warnings(caught)
+    assert str(earlier) in message and str(later) in message
+
+
 # ------------------------------------------------------------------------- summary differences
 def test_summary_difference_equals_hand_computed(tmp_path):
     finals = {"mepol": {0: 1.0, 1: 1.2, 2: 1.1}, "hmepol": {0: 1.5, 1: 1.4, 3: 1.9}}
@@ -301,6 +386,142 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     assert (out / "summary.md").read_text().count("HMepol − Mepol") == 3
 
 
+# Configuration 0 drawn every epoch, configuration 1 in even epochs only (of 20).
+EVEN_EPOCHS_DRAW_BOTH = {e: (0, 1) if e % 2 == 0 else (0,) for e in range(20)}
+
+
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (lambda text: text[:-20], "epochs.csv is cut short: its last line (21) stops mid-line"),
+        (
+            lambda text: text.replace(text.splitlines()[5], text.splitlines()[5][:9]),
+            "epochs.csv line 6 does not parse: 2 fields, the header has 12",
+        ),
+        (
+            lambda text: set_field(text, 6, "entropy", "0.2.1"),
+            "epochs.csv line 6 does not parse: entropy='0.2.1' is not a number",
+        ),
+        (lambda text: set_field(text, 6, "entropy", ""), "line 6: entropy=nan is not a finite"),
+        (lambda text: set_field(text, 6, "entropy", "inf"), "line 6: entropy=inf is not a finite"),
+        (
+            lambda text: set_field(text, 7, "entropy_c0", "-inf"),
+            "line 7: entropy_c0=-inf is not a finite number",
+        ),
+        (
+            lambda text: set_field(text, 5, "entropy_c1", ""),
+            "line 5: entropy_c1=nan in epoch 3, which drew configuration 1",
+        ),
+    ],
+    ids=["last-line-cut", "short-row", "not-a-number", "nan", "inf", "inf-config", "nan-drawn"],
+)
+def test_report_skips_a_run_with_a_malformed_row_and_says_why(tmp_path, damage, reason):
+    root = tmp_path / "runs"
+    for seed in (0, 1):
+        write_batches(write_run(root, seed=seed), EVEN_EPOCHS_DRAW_BOTH)
+    damaged = write_run(root, seed=2, name="damaged")
+    # Epoch 3 (line 5) drew configuration 1 here.
+    write_batches(damaged, EVEN_EPOCHS_DRAW_BOTH | {3: (0, 1)})
+    epochs_csv = damaged / "epochs.csv"
+    epochs_csv.write_text(damage(epochs_csv.read_text()))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        index = run_report(root, tmp_path / "report")
+    [message] = _skip_warnings(caught)
+    assert message.startswith(f"skipping run {damaged}: ") and reason in message
+    listed = re.search(r"<code>damaged</code>: ([^<]*)</li>", index.read_text())
+    assert listed and reason in html.unescape(listed[1])
+    # The rest of the report is built from the two sound runs.
+    summary = pd.read_csv(tmp_path / "report" / "summary.csv")
+    assert set(summary["seeds"]) == {"0 1"}
+
+
+def test_a_configuration_not_drawn_in_an_epoch_is_not_malformed(tmp_path):
+    run = write_run(tmp_path, epochs=20)
+    write_batches(run, EVEN_EPOCHS_DRAW_BOTH)
+    text = (run / "epochs.csv").read_text()
+    for epoch in range(1, 20, 2):  # line epoch + 2
+        text = set_field(text, epoch + 2, "entropy_c1", "")
+    (run / "epochs.csv").write_text(text)
+    [loaded], skipped = discover_runs(tmp_path)
+    assert skipped == []
+    # Observed at even epochs only: the last 10% of those 10 values is epoch 18's, 0.9 * 18 / 19.
+    assert loaded.final_entropy(1) == pytest.approx(0.9 * 18 / 19)
+
+
+def test_counts_on_stdout_and_in_the_page_are_the_runs_actually_used(tmp_path, capsys):
+    root = tmp_path / "runs"
+    for algo in ("mepol", "hmepol"):
+        for seed in (0, 1):
+            write_run(root, algo=algo, seed=seed)
+    # A copy of hmepol seed 1 taken half-way: left out.
+    write_run(root, algo="hmepol", seed=1, epochs_done=10, name="hmepol-seed1-copy")
+    write_run(root, algo="mepol", seed=5, status="running", name="unfinished")
+    write_finetune_run(root, algo_init="mepol", seed=0)
+    write_finetune_run(root, algo_init="scratch", seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkippedRunWarning)
+        index = run_report(root, tmp_path / "report")
+    # 4 pre-training seeds + 2 fine-tuning runs; 2 groups; the copy and the unfinished run
+    # skipped; curves, curves per configuration, bars, heatmaps, 2 x trajectories, fine-tuning.
+    expected = "6 runs used (2 groups), 2 skipped, 7 figures"
+    assert capsys.readouterr().out == f"report: {expected} -> {index}\n"
+    page = index.read_text()
+    assert expected in page
+    assert "(4 pre-training runs in 2 groups, 2 fine-tuning runs)" in page
+    assert page.count("<figure>") == 7 == len(list((tmp_path / "report" / "figures").iterdir()))
+    assert re.findall(r"<li><code>([^<]*)</code>", page) == ["hmepol-seed1-copy", "unfinished"]
+
+
+def test_a_new_report_replaces_the_files_of_the_earlier_one_and_nothing_else(tmp_path):
+    root, out = tmp_path / "runs", tmp_path / "report"
+    for algo in ("mepol", "hmepol"):
+        write_run(root, algo=algo, seed=0, name=f"{algo}-0")
+    write_finetune_run(root, algo_init="hmepol", seed=0)
+    run_report(root, out)
+    (out / "notes.txt").write_text("mine")
+    (out / "figures" / "sketch.png").write_bytes(b"mine too")
+    # The HMepol runs are gone: their trajectories and the fine-tuning figure and table go too.
+    shutil.rmtree(root / "hmepol-0")
+    shutil.rmtree(root / "finetune-hmepol-seed0")
+    index = run_report(root, out)
+    report_files = {
+        "figures/slope_entropy_epochs.png",
+        "figures/slope_entropy_epochs_by_config.png",
+        "figures/slope_final_entropy_bars.png",
+        "figures/slope_heatmaps.png",
+        "figures/slope_trajectories_mepol.png",
+        "index.html",
+        "summary.csv",
+        "summary.md",  # one group left: no differences.csv
+    }
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    assert on_disk == report_files | {"report.json", "notes.txt", "figures/sketch.png"}
+    assert set(json.loads((out / "report.json").read_text())["files"]) == report_files
+    assert "finetune.csv" not in index.read_text()  # no link to a table that is gone
+
+
+def test_report_refuses_a_folder_it_did_not_write(tmp_path, capsys):
+    root, out = tmp_path / "runs", tmp_path / "thesis"
+    write_run(root)
+    out.mkdir()
+    (out / "chapter1.tex").write_text("\\chapter{Introduction}")
+    with pytest.raises(SystemExit):
+        main(["report", str(root), "--out", str(out)])
+    [line] = capsys.readouterr().err.splitlines()
+    assert line.startswith("hmepol: error: report folder ") and repr(str(out)) in line
+    assert [p.name for p in out.iterdir()] == ["chapter1.tex"]
+    # An empty folder is a fine place for a report.
+    (out / "chapter1.tex").unlink()
+    assert run_report(root, out).exists()
+    # A manifest that lists a file outside its folder was not written by a report.
+    run_json = next(root.rglob("run.json"))
+    (out / "report.json").write_text(json.dumps({"files": [f"../runs/{run_json.parent.name}"]}))
+    with pytest.raises(ValueError, match="is not a report manifest"):
+        run_report(root, out)
+    assert run_json.exists()
+
+
 def test_report_refuses_missing_or_empty_root(tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         run_report(tmp_path / "nowhere", tmp_path / "out")
@@ -321,6 +542,71 @@ def test_save_run_plots_writes_heatmap_and_trajectories(tmp_path):
     paths = save_run_plots(world, positions, tmp_path / "eval")
     assert sorted(p.name for p in paths) == ["heatmap.png", "trajectories.png"]
     assert all(p.stat().st_size > 1000 for p in paths)
+
+
+@pytest.fixture()
+def drawn_figures(monkeypatch) -> dict[str, object]:
+    """The figures the report saves, by file name, to look at their axes."""
+    from hmepol_cli.report import figures
+
+    drawn: dict[str, object] = {}
+
+    def save_and_keep(fig, path):
+        drawn[Path(path).name] = fig
+        return save(fig, path)
+
+    save = figures.save
+    monkeypatch.setattr(figures, "save", save_and_keep)
+    return drawn
+
+
+def _panels(fig) -> list:
+    return [ax for ax in fig.axes if ax.get_lines()]
+
+
+def _line_values(ax) -> np.ndarray:
+    values = np.concatenate([np.asarray(line.get_ydata(), float) for line in ax.get_lines()])
+    return values[np.isfinite(values)]
+
+
+def test_every_entropy_panel_shows_its_whole_curve(tmp_path, drawn_figures):
+    # Configuration 0 ends at 10 nats, configuration 1 at 1: on one shared scale set by the last
+    # panel, the first curve would leave its axes. The two winds differ likewise.
+    write_run(tmp_path / "runs", wind=0.05, final=10.0, config_finals=(10.0, 1.0))
+    write_run(tmp_path / "runs", wind=0.4, final=1.0, config_finals=(10.0, 1.0))
+    run_report(tmp_path / "runs", tmp_path / "report")
+    by_config = _panels(drawn_figures["slope_entropy_epochs_by_config.png"])
+    assert [ax.get_title() for ax in by_config] == [
+        "config 0: south, wind 0.05",
+        "config 1: north, wind 0.05",
+        "config 0: south, wind 0.4",
+        "config 1: north, wind 0.4",
+    ]
+    average = _panels(drawn_figures["slope_entropy_epochs.png"])
+    for ax in by_config + average:
+        low, high = ax.get_ylim()
+        values = _line_values(ax)
+        assert low < values.min() and values.max() < high, ax.get_title()
+    for ax in by_config[1::2]:  # configuration 1: its own scale, 0 to log(3.04) = 1.11
+        assert ax.get_ylim()[1] < 2.0
+    for ax in drawn_figures["slope_final_entropy_bars.png"].axes:
+        low, high = ax.get_ylim()
+        assert all(low <= bar.get_height() <= high for bar in ax.patches), ax.get_title()
+
+
+def test_a_run_of_one_epoch_is_drawn_as_a_point(tmp_path, drawn_figures):
+    for seed in (0, 1):
+        write_run(tmp_path / "runs", seed=seed, epochs=1)  # entropy 0 at epoch 0
+    run_report(tmp_path / "runs", tmp_path / "report")
+    for name in ("slope_entropy_epochs.png", "slope_entropy_epochs_by_config.png"):
+        for ax in _panels(drawn_figures[name]):
+            markers = [
+                line
+                for line in ax.get_lines()
+                if line.get_marker() not in ("None", "", " ") and line.get_markersize() > 0
+            ]
+            points = [(x, y) for line in markers for x, y in line.get_xydata()]
+            assert points == [(0.0, 0.0)], (name, ax.get_title())
 
 
 def test_figure_names_of_long_labels_stay_short_and_distinct():

@@ -175,34 +175,53 @@ def draw_bound(ax, value: float, label: bool = True) -> None:
         )
 
 
+def isolated(values: np.ndarray) -> np.ndarray:
+    """Mask of the finite values whose neighbours are both missing: a line draws nothing there."""
+    finite = np.isfinite(values)
+    before = np.concatenate([[False], finite[:-1]])
+    after = np.concatenate([finite[1:], [False]])
+    return finite & ~before & ~after
+
+
+def plot_mean(
+    ax, x: np.ndarray, mean: np.ndarray, half: np.ndarray, colour: str, ls, label: str
+) -> None:
+    """Mean curve (n_points,) with its confidence band of half-width ``half``.
+
+    A point with no neighbour (a run of one epoch, a configuration drawn in one epoch between
+    gaps) gets a marker, and its interval a bar: a line and a band through one point are empty.
+    """
+    ax.plot(x, mean, color=colour, ls=ls, lw=1.5, label=label)
+    if np.isfinite(half).any():
+        ax.fill_between(x, mean - half, mean + half, color=colour, alpha=0.2, lw=0)
+    alone = isolated(mean)
+    ax.plot(x[alone], mean[alone], ls="none", marker="o", ms=5, color=colour)
+    bar = alone & np.isfinite(half)
+    ax.vlines(x[bar], (mean - half)[bar], (mean + half)[bar], color=colour, alpha=0.4)
+
+
 def draw_curve(ax, group: Group, style: Style, config: int | None) -> None:
     epochs, curves = group.curves(config)
     if curves.size == 0:
         return
     mean, half, _ = curve_ci(curves)
-    n = len(group.runs)
-    ax.plot(
-        epochs,
-        mean,
-        color=style.colour,
-        ls=style.linestyle,
-        lw=1.5,
-        label=f"{style.label} ({n_text(n)})",
-    )
-    if np.isfinite(half).any():
-        ax.fill_between(epochs, mean - half, mean + half, color=style.colour, alpha=0.2, lw=0)
+    label = f"{style.label} ({n_text(len(group.runs))})"
+    plot_mean(ax, epochs, mean, half, style.colour, style.linestyle, label)
 
 
-def fit_to_lines(ax) -> None:
-    """Y-limits from the mean lines and the bound, not the bands: with two seeds a Student-t band
-    is 12.7 standard errors wide and would flatten every curve (the band is clipped, not hidden)."""
-    values = [np.asarray(line.get_ydata(), dtype=float) for line in ax.get_lines()]
-    values = np.concatenate([v[np.isfinite(v)] for v in values]) if values else np.array([])
+def fit_to_lines(axes) -> None:
+    """One y-range for ``axes`` (one panel, or panels that share their y-axis) from their mean
+    lines and bounds, not the bands: with two seeds a Student-t band is 12.7 standard errors wide
+    and would flatten every curve (the band is clipped, not hidden)."""
+    lines = [line for ax in np.ravel(axes) for line in ax.get_lines()]
+    values = np.concatenate([np.asarray(line.get_ydata(), dtype=float) for line in lines] + [[]])
+    values = values[np.isfinite(values)]
     if values.size == 0:
         return
     lo, hi = float(values.min()), float(values.max())
     pad = max(0.15 * (hi - lo), 0.25)
-    ax.set_ylim(lo - pad, hi + pad)
+    for ax in np.ravel(axes):
+        ax.set_ylim(lo - pad, hi + pad)
 
 
 def _legend(fig, axes) -> None:
@@ -240,11 +259,11 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
         for group in members:
             draw_curve(ax, group, styles[group.label], None)
         draw_bound(ax, average_bound(members[0].first))
-        fit_to_lines(ax)
         ax.set_title(f"wind {format_wind(wind)}" if several else "average over configurations")
         ax.set_xlabel("epoch")
         ax.set_ylabel("entropy (nats)")
         ax.grid(alpha=0.3)
+    fit_to_lines(axes)  # one scale for every wind, as the panels share their y-axis
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     compared = " vs ".join(styles)
@@ -279,7 +298,8 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
     cols = min(n_configs, 5)
     per_wind = math.ceil(n_configs / cols)
     fig = new_figure(4.0 * cols, 3.0 * per_wind * len(winds) + 0.6)
-    axes = fig.subplots(per_wind * len(winds), cols, squeeze=False, sharey=True)
+    # Each configuration on its own scale: their entropies differ by more than a curve's rise.
+    axes = fig.subplots(per_wind * len(winds), cols, squeeze=False)
     for w, wind in enumerate(winds):
         members = at_wind(groups, wind)
         for c in range(per_wind * cols):
@@ -303,8 +323,9 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
     caption = (
         f"State entropy (nats) per epoch computed only on the mini-batches drawn in each "
         f"configuration, for {compared}. Line: mean over seeds; band: Student-t 95% CI "
-        f"({seeds_text(groups)}); gaps are epochs where no seed drew that configuration. "
-        "Dashed: log(free area) of the configuration."
+        f"({seeds_text(groups)}); gaps are epochs where no seed drew that configuration, a dot an "
+        "epoch between gaps. Each panel has its own y-scale. Dashed: log(free area) of the "
+        "configuration."
     )
     return [
         FigureRecord(
@@ -335,6 +356,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     axes = fig.subplots(rows, cols, squeeze=False, sharey=True)
     width = 0.8 / len(styles)
     rng = np.random.default_rng(0)  # jitter of the seed dots only
+    shown_values = [0.0]  # bars start at 0
     for i, wind in enumerate(winds):
         ax = axes[i // cols, i % cols]
         members = at_wind(groups, wind)
@@ -384,20 +406,21 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                     label="log(free area)" if x == 0 else None,
                 )
         # Limits from the bars, the seed dots and the bounds: a two-seed t-interval is clipped.
-        shown_values = (
+        shown_values += (
             [p.get_height() for p in ax.patches]
             + [float(v) for c in ax.collections for v in np.asarray(c.get_offsets())[:, 1]]
             + [config_bound(run, c) for c in configs]
         )
-        shown_values = np.array([v for v in shown_values if np.isfinite(v)] + [0.0])
-        lo, hi = shown_values.min(), shown_values.max()
-        pad = max(0.15 * (hi - lo), 0.25)
-        ax.set_ylim(lo - pad, hi + pad)
         ticks = ["average"] + [f"config {c}\n{names[c]}" for c in configs[1:]]
         ax.set_xticks(range(len(configs)), ticks)
         ax.set_ylabel("final entropy (nats)")
         ax.set_title(f"wind {format_wind(wind)}" if several else "")
         ax.grid(axis="y", alpha=0.3)
+    # One range for every wind, as the panels share their y-axis.
+    finite = np.array([v for v in shown_values if np.isfinite(v)])
+    pad = max(0.15 * float(finite.max() - finite.min()), 0.25)
+    for ax in axes.ravel():
+        ax.set_ylim(finite.min() - pad, finite.max() + pad)
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     compared = " vs ".join(styles)
@@ -604,19 +627,15 @@ def finetune_returns(
         )
         fig = new_figure(4.6 * len(configs), 3.6)
         axes = fig.subplots(1, len(configs), squeeze=False, sharey=True)[0]
-        counts = []
         for ax, config in zip(axes, configs, strict=True):
             for init in inits:
                 if (init, config) not in curves:
                     continue
                 epochs, data = curves[(init, config)]
-                mean, half, n = curve_ci(data)
-                counts.append(data.shape[0])
-                colour = algo_colour(init)
+                mean, half, _ = curve_ci(data)
                 name = "TRPO from scratch" if init == "scratch" else f"{algo_label(init)} init"
-                ax.plot(epochs, mean, color=colour, lw=1.5, label=f"{name} (n={data.shape[0]})")
-                if np.isfinite(half).any():
-                    ax.fill_between(epochs, mean - half, mean + half, color=colour, alpha=0.2, lw=0)
+                label = f"{name} (n={data.shape[0]})"
+                plot_mean(ax, epochs, mean, half, algo_colour(init), "-", label)
             title = names[config] if config < len(names) else f"{config}"
             ax.set_title(f"config {config}: {title}", fontsize=10)
             ax.set_ylim(-0.05, 1.05)  # a return is the share of episodes that reached the goal

@@ -11,8 +11,8 @@ from pathlib import Path
 import pandas as pd
 
 from hmepol_cli.report.figures import FigureRecord
-from hmepol_cli.report.runs import Group, Run, SkippedRun, format_wind
-from hmepol_cli.report.summary import format_number
+from hmepol_cli.report.runs import Group, SkippedRun, format_wind
+from hmepol_cli.report.summary import ReportCounts, format_number
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em;
@@ -62,12 +62,13 @@ def write_index(
     out_dir: Path,
     runs_root: Path,
     groups: list[Group],
-    finetune_runs: list[Run],
     skipped: list[SkippedRun],
     figures: list[FigureRecord],
     tables: dict[str, pd.DataFrame],
+    table_files: list[Path],
+    counts: ReportCounts,
 ) -> Path:
-    """Write ``out_dir/index.html`` and return its path."""
+    """Write ``out_dir/index.html`` (linking ``table_files``) and return its path."""
     out_dir = Path(out_dir)
     e = html.escape
     parts = [
@@ -77,9 +78,9 @@ def write_index(
         f"<style>{STYLE}</style></head><body>",
         "<h1>hmepol report: maximum state-entropy exploration</h1>",
         f"<p>Runs under <code>{e(str(runs_root))}</code>, report built "
-        f"{dt.datetime.now().strftime('%Y-%m-%d %H:%M')}. "
-        f"{sum(len(g.runs) for g in groups)} pre-training runs in {len(groups)} groups, "
-        f"{len(finetune_runs)} fine-tuning runs, {len(skipped)} skipped.</p>",
+        f"{dt.datetime.now().strftime('%Y-%m-%d %H:%M')}: {counts.text()} "
+        f"({counts.pretraining_runs} pre-training runs in {counts.groups} groups, "
+        f"{counts.finetune_runs} fine-tuning runs).</p>",
         "<p>Entropies are kNN estimates in nats. Curves and bars show the mean over seeds with a "
         "Student-t 95% confidence interval (none with a single seed). "
         "The final entropy of a run is "
@@ -146,11 +147,7 @@ def write_index(
             "reaches the final mean return of the Mepol-initialised run.</p>"
         )
         parts.append(_table(finetune))
-    links = [
-        n
-        for n in ("summary.csv", "differences.csv", "finetune.csv", "summary.md")
-        if (out_dir / n).exists()
-    ]
+    links = [e(_relative(path, out_dir)) for path in table_files]
     parts.append(
         "<p>Tables as files: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>"
     )

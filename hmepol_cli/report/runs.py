@@ -6,17 +6,24 @@ A run directory is any directory holding ``run.json`` (the trainer's contract):
     run.json             status, epochs_done, env, algo, policy, seed, wind, config names/probs,
                          free_area and log_free_area per configuration
     epochs.csv           one row per epoch (entropy, objective, entropy_c<c>, kl, ...)
+    batches.csv          one row per mini-batch (epoch, batch, config, entropy): which
+                         configurations an epoch drew, where its entropy_c<c> must be a number
     eval/final.npz       positions_c<c>: (n_traj, T+1, 2) rollouts of the final policy
     finetune.csv         fine-tuning runs only: epoch, target, config, return, init, algo_init, seed
 
-Runs that cannot be used (unfinished, missing or corrupt files) are skipped with a warning and
-listed, with the reason, in the report; the rest of the report is still built.
+Runs that cannot be used (unfinished, missing or corrupt files, a row cut short or not a number,
+a seed found twice) are skipped with a warning and listed, with the reason, in the report; the
+rest of the report is still built.
 """
 
 from __future__ import annotations
 
+import csv
+import datetime as dt
+import io
 import json
 import math
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +32,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from hmepol_cli.finetune import FINETUNE_CSV
 from hmepol_cli.report.stats import final_value
+from hmepol_cli.run_log import BATCHES_CSV, EPOCHS_CSV
 
 # Config keys that say how a run was executed, not what was run: never a reason to split groups.
 RUN_SPECIFIC_KEYS = {
@@ -36,6 +45,11 @@ RUN_SPECIFIC_KEYS = {
     "skip_finished",
     "checkpoint_every",
     "device",
+    # A population (seeds=[...]) and how its members were batched on the device.
+    "seeds",
+    "vmap",
+    "cuda_graphs",
+    "matmul_precision",
     "eval.every",
     # The effective wind is read once (run.json) and stored under the synthetic key "wind".
     "wind",
@@ -55,6 +69,11 @@ SHORT_NAMES = {
 ALGO_ORDER = ("mepol", "alphamepol", "hmepol")
 REQUIRED_EPOCH_COLUMNS = ("epoch", "entropy")
 REQUIRED_FINETUNE_COLUMNS = ("epoch", "target", "config", "return", "algo_init", "seed")
+# The columns the report reads as numbers: a field that is not one makes the run unusable.
+NUMERIC_EPOCH_COLUMNS = re.compile(r"epoch|entropy(_c\d+)?")
+NUMERIC_FINETUNE_COLUMNS = re.compile(r"epoch|config|return|seed")
+MISSING_FIELDS = ("", "nan", "-nan", "+nan")  # what a CSV writer puts for NaN, any case
+CONFIG_ENTROPY = re.compile(r"entropy_c(\d+)")  # entropy in configuration c (group 1)
 
 
 class SkippedRunWarning(UserWarning):
@@ -152,6 +171,22 @@ class Run:
         """Mean entropy over the last 10% of epochs (nats): average (None) or one configuration."""
         return final_value(self.entropy_curve(config).to_numpy())
 
+    @property
+    def completeness(self) -> tuple[int, int, float]:
+        """How far the run got, to choose between two copies of one seed: epochs done (run.json),
+        rows in epochs.csv, and the wall_time of its last epoch (the latest wins a tie)."""
+        try:
+            declared = int(self.meta.get("epochs_done", 0))
+        except (TypeError, ValueError):
+            declared = 0
+        if self.epochs is None:
+            return declared, 0, -math.inf
+        wall_time = -math.inf
+        if "wall_time" in self.epochs:
+            last = pd.to_numeric(self.epochs["wall_time"], errors="coerce").iloc[-1]
+            wall_time = float(last) if np.isfinite(last) else -math.inf
+        return declared, len(self.epochs), wall_time
+
 
 @dataclass
 class Group:
@@ -248,30 +283,122 @@ def load_config(path: Path) -> dict[str, Any]:
     return flatten(container)
 
 
-def _read_csv(path: Path, required: tuple[str, ...]) -> pd.DataFrame:
+def read_table(path: Path, required: tuple[str, ...], numeric: re.Pattern) -> pd.DataFrame:
+    """A CSV the trainer wrote, indexed by the line of the file each row is on (for messages).
+
+    Raises :class:`RunError` when the file is cut short, a row does not parse, or a column whose
+    name ``numeric`` matches holds something that is not a number (an empty field is NaN). Other
+    columns become numbers where every field is one. The trainer rewrites its CSVs whole and ends
+    every row with a line end, so a file that stops mid-line was cut (a copy, a full disk), and
+    its last row may hold half a number.
+    """
     if not path.is_file():
         raise RunError(f"{path.name} is missing")
     try:
-        frame = pd.read_csv(path)
-    except Exception as err:  # pandas raises several parser errors
-        raise RunError(
-            f"{path.name} is corrupt ({type(err).__name__}: {err})".splitlines()[0]
-        ) from None
-    missing = [c for c in required if c not in frame.columns]
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise RunError(f"{path.name} is not UTF-8 text") from None
+    except OSError as err:
+        raise RunError(f"{path.name} is unreadable ({type(err).__name__})") from None
+    if not text.strip():
+        raise RunError(f"{path.name} is empty")
+    if not text.endswith("\n"):
+        last = text.count("\n") + 1
+        raise RunError(f"{path.name} is cut short: its last line ({last}) stops mid-line")
+    reader = csv.reader(io.StringIO(text))
+    try:
+        header = next(reader)
+    except csv.Error as err:
+        raise RunError(f"{path.name} line 1 does not parse ({err})") from None
+    if len(set(header)) != len(header):
+        raise RunError(f"{path.name} is corrupt (its header names a column twice)")
+    missing = [c for c in required if c not in header]
     if missing:
         raise RunError(f"{path.name} is corrupt (missing columns: {', '.join(missing)})")
-    if frame.empty:
+    rows, lines = [], []
+    while True:
+        line = reader.line_num + 1
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as err:
+            raise RunError(f"{path.name} line {line} does not parse ({err})") from None
+        if not row:  # a blank line
+            continue
+        if len(row) != len(header):
+            raise RunError(
+                f"{path.name} line {line} does not parse: {len(row)} fields, "
+                f"the header has {len(header)}"
+            )
+        rows.append(row)
+        lines.append(line)
+    if not rows:
         raise RunError(f"{path.name} has no rows")
-    numeric = [c for c in ("epoch", "config", "return", "seed") if c in required]
-    numeric += [c for c in frame.columns if c.startswith("entropy")]
-    for column in numeric:
-        converted = pd.to_numeric(frame[column], errors="coerce")
-        if converted.isna().sum() > frame[column].isna().sum():
-            raise RunError(f"{path.name} is corrupt (non-numeric values in column {column!r})")
-        frame[column] = converted
-    if frame["epoch"].isna().any():
-        raise RunError(f"{path.name} is corrupt (empty epoch)")
+    frame = pd.DataFrame(rows, columns=header, index=pd.Index(lines, name="line"))
+    for column in frame.columns:
+        fields = frame[column].str.strip()
+        blank = fields.str.lower().isin(MISSING_FIELDS)
+        numbers = pd.to_numeric(fields.mask(blank), errors="coerce")
+        unparsed = numbers.isna() & ~blank
+        if not unparsed.any():
+            frame[column] = numbers
+        elif numeric.fullmatch(column):
+            line = unparsed.idxmax()
+            raise RunError(
+                f"{path.name} line {line} does not parse: "
+                f"{column}={fields[line][:40]!r} is not a number"
+            )
     return frame
+
+
+def _require_finite(frame: pd.DataFrame, columns: tuple[str, ...], name: str) -> None:
+    for column in columns:
+        values = frame[column].to_numpy(float)
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            line = frame.index[bad[0]]
+            raise RunError(f"{name} line {line}: {column}={values[bad[0]]} is not a finite number")
+
+
+def _drawn_configurations(path: Path) -> set[tuple[float, int]] | None:
+    """(epoch, configuration) of every mini-batch in batches.csv; None when there is no file."""
+    if not path.exists():
+        return None
+    batches = read_table(path, ("epoch", "config"), re.compile("epoch|config"))
+    _require_finite(batches, ("epoch", "config"), path.name)
+    return set(zip(batches["epoch"].astype(float), batches["config"].astype(int), strict=True))
+
+
+def check_entropies(epochs: pd.DataFrame, drawn: set[tuple[float, int]] | None) -> None:
+    """Raise :class:`RunError` naming the line of epochs.csv where an epoch or its entropy is
+    not finite, or a configuration's entropy is not finite in an epoch that drew it.
+
+    ``entropy_c<c>`` is empty (NaN) in an epoch that drew no mini-batch of configuration c.
+    ``drawn`` holds the (epoch, configuration) pairs that were drawn (batches.csv); without it
+    only an infinite ``entropy_c<c>`` is known to be wrong.
+    """
+    _require_finite(epochs, ("epoch", "entropy"), EPOCHS_CSV)
+    epoch = epochs["epoch"].to_numpy(float)
+    for column in epochs.columns:
+        match = CONFIG_ENTROPY.fullmatch(column)
+        if match is None:
+            continue
+        config = int(match[1])
+        values = epochs[column].to_numpy(float)
+        wrong = np.isinf(values)
+        if drawn is not None:
+            was_drawn = np.array([(e, config) in drawn for e in epoch])
+            wrong |= np.isnan(values) & was_drawn
+        bad = np.flatnonzero(wrong)
+        if bad.size:
+            i = bad[0]
+            why = (
+                f"in epoch {epoch[i]:g}, which drew configuration {config}"
+                if np.isnan(values[i])
+                else "is not a finite number"
+            )
+            raise RunError(f"{EPOCHS_CSV} line {epochs.index[i]}: {column}={values[i]} {why}")
 
 
 def _read_positions(path: Path, n_configs: int) -> dict[int, np.ndarray]:
@@ -332,16 +459,21 @@ def load_run(path: Path) -> Run:
             "policy.name": meta.get("policy"),
             "seed": meta.get("seed"),
         }
-    if not (path / "finetune.csv").exists():
+    if not (path / FINETUNE_CSV).exists():
         # Keys added to the schema after a run was made take their defaults, so old and new runs
         # of the same settings group together.
         config = {**_schema_defaults(), **config}
     run = Run(path=path, config=config, meta=meta)
-    if (path / "finetune.csv").exists():
+    if (path / FINETUNE_CSV).exists():
         # A fine-tuning run is reported only through its returns.
-        run.finetune = _read_csv(path / "finetune.csv", REQUIRED_FINETUNE_COLUMNS)
+        run.finetune = read_table(
+            path / FINETUNE_CSV, REQUIRED_FINETUNE_COLUMNS, NUMERIC_FINETUNE_COLUMNS
+        )
+        _require_finite(run.finetune, ("epoch",), FINETUNE_CSV)
         return run
-    run.epochs = _read_csv(path / "epochs.csv", REQUIRED_EPOCH_COLUMNS).sort_values("epoch")
+    epochs = read_table(path / EPOCHS_CSV, REQUIRED_EPOCH_COLUMNS, NUMERIC_EPOCH_COLUMNS)
+    check_entropies(epochs, _drawn_configurations(path / BATCHES_CSV))
+    run.epochs = epochs.sort_values("epoch")
     run.positions = _read_positions(path / "eval" / "final.npz", run.n_configs)
     return run
 
@@ -388,20 +520,66 @@ def _algo_rank(algo: str) -> tuple[int, str]:
     return (ALGO_ORDER.index(algo) if algo in ALGO_ORDER else len(ALGO_ORDER), algo)
 
 
+def _settings(run: Run, keys: list[str]) -> tuple[tuple[str, Any], ...]:
+    return tuple((k, run.wind if k == "wind" else run.config.get(k)) for k in keys)
+
+
+def _completeness_text(run: Run) -> str:
+    declared, rows, wall_time = run.completeness
+    text = f"{declared} epochs done" + (f" ({rows} rows in epochs.csv)" if rows != declared else "")
+    if np.isfinite(wall_time):
+        ended = dt.datetime.fromtimestamp(wall_time).isoformat(sep=" ", timespec="seconds")
+        text += f", last epoch ended {ended}"
+    return text
+
+
+def drop_duplicate_seeds(runs: list[Run]) -> tuple[list[Run], list[SkippedRun]]:
+    """Keep one pre-training run per (settings, seed): the most complete (``Run.completeness``).
+
+    Two directories with the same settings and seed are the same run twice (a copy, a run made
+    again); averaging both would count that seed twice. Each copy left out is skipped with a
+    warning naming it and the run kept in its place.
+    """
+    pretraining = [r for r in runs if r.is_pretraining]
+    keys = varying_keys(pretraining)
+    copies: dict[tuple, list[Run]] = {}
+    for run in sorted(pretraining, key=lambda r: str(r.path)):
+        copies.setdefault((_settings(run, keys), run.seed), []).append(run)
+    left_out: list[SkippedRun] = []
+    for same in copies.values():
+        # max keeps the first in path order among equals: the choice does not depend on discovery.
+        kept = max(same, key=lambda r: r.completeness)
+        for run in same:
+            if run is kept:
+                continue
+            reason = (
+                f"same settings and seed {run.seed} as {kept.path}, which is kept "
+                f"({_completeness_text(kept)}; this one: {_completeness_text(run)})"
+            )
+            left_out.append(SkippedRun(run.path, reason))
+            warnings.warn(f"skipping run {run.path}: {reason}", SkippedRunWarning, stacklevel=2)
+    dropped = {s.path for s in left_out}
+    return [r for r in runs if r.path not in dropped], left_out
+
+
 def group_runs(runs: list[Run]) -> list[Group]:
     """Split pre-training runs into groups that differ only by seed, ordered env, wind, algo.
 
-    Within a group every seed appears once; a repeated seed (the same run twice) keeps the
-    first directory in sorted order.
+    Every seed of a group must appear once: pass the runs through :func:`drop_duplicate_seeds`.
     """
     runs = [r for r in runs if r.is_pretraining]
     keys = varying_keys(runs)
     groups: dict[tuple, Group] = {}
     for run in sorted(runs, key=lambda r: str(r.path)):
-        key = tuple((k, run.wind if k == "wind" else run.config.get(k)) for k in keys)
+        key = _settings(run, keys)
         group = groups.setdefault(key, Group(key=key))
-        if run.seed not in {r.seed for r in group.runs}:
-            group.runs.append(run)
+        twin = next((r for r in group.runs if r.seed == run.seed), None)
+        if twin is not None:
+            raise ValueError(
+                f"{run.path} and {twin.path} are seed {run.seed} of the same settings "
+                "(drop_duplicate_seeds keeps one)"
+            )
+        group.runs.append(run)
     ordered = sorted(
         groups.values(),
         # Within an algorithm the group with most seeds (the main experiment) comes first.

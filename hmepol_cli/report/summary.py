@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,27 @@ import pandas as pd
 from hmepol_cli.report.figures import average_bound, finetune_curves, finetune_frame
 from hmepol_cli.report.runs import Group, Run, algo_label
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
+
+
+@dataclass(frozen=True)
+class ReportCounts:
+    """What one report holds, counted once for both the command's last line and index.html."""
+
+    pretraining_runs: int  # in the groups, one per seed
+    finetune_runs: int
+    groups: int
+    skipped: int
+    figures: int
+
+    @property
+    def runs_used(self) -> int:
+        return self.pretraining_runs + self.finetune_runs
+
+    def text(self) -> str:
+        return (
+            f"{self.runs_used} runs used ({self.groups} groups), {self.skipped} skipped, "
+            f"{self.figures} figures"
+        )
 
 
 def _config_rows(group: Group) -> list[tuple[int | None, str]]:
@@ -148,8 +170,9 @@ def to_markdown(frame: pd.DataFrame, digits: int = 3) -> str:
 
 def write_summary(
     groups: list[Group], finetune_runs: list[Run], out_dir: Path
-) -> dict[str, pd.DataFrame]:
-    """Write summary.csv, differences.csv, finetune.csv and summary.md; return the tables."""
+) -> tuple[dict[str, pd.DataFrame], list[Path]]:
+    """Write summary.csv, differences.csv, finetune.csv (each when not empty) and summary.md;
+    return the tables and the files written."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     tables = {
@@ -157,9 +180,11 @@ def write_summary(
         "differences": difference_table(groups),
         "finetune": finetune_table(finetune_runs),
     }
+    files = []
     for name, table in tables.items():
         if not table.empty:
-            table.to_csv(out_dir / f"{name}.csv", index=False)
+            files.append(out_dir / f"{name}.csv")
+            table.to_csv(files[-1], index=False)
     text = [
         "# hmepol report: summary\n",
         "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs; then the "
@@ -173,5 +198,6 @@ def write_summary(
     ]
     if not tables["finetune"].empty:
         text += ["## Fine-tuning returns\n", to_markdown(tables["finetune"])]
-    (out_dir / "summary.md").write_text("\n".join(text))
-    return tables
+    files.append(out_dir / "summary.md")
+    files[-1].write_text("\n".join(text))
+    return tables, files
