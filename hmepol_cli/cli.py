@@ -387,7 +387,7 @@ def _report(args: list[str]) -> None:
         fail(f"--out {str(out)!r} is a file; give a folder for the report")
     try:
         index = run_report(runs, out)
-    except (UserError, ValueError) as error:
+    except UserError as error:
         fail(str(error))
     print(f"hmepol: report written to {index}")
 

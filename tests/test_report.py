@@ -19,6 +19,7 @@ import pandas as pd
 import pytest
 
 from hmepol_cli.cli import main
+from hmepol_cli.errors import UserError
 from hmepol_cli.report import SkippedRunWarning, run_report
 from hmepol_cli.report.runs import discover_runs, drop_duplicate_seeds, group_runs, varying_keys
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
@@ -517,16 +518,16 @@ def test_report_refuses_a_folder_it_did_not_write(tmp_path, capsys):
     # A manifest that lists a file outside its folder was not written by a report.
     run_json = next(root.rglob("run.json"))
     (out / "report.json").write_text(json.dumps({"files": [f"../runs/{run_json.parent.name}"]}))
-    with pytest.raises(ValueError, match="is not a report manifest"):
+    with pytest.raises(UserError, match="is not a report manifest"):
         run_report(root, out)
     assert run_json.exists()
 
 
 def test_report_refuses_missing_or_empty_root(tmp_path):
-    with pytest.raises(ValueError, match="does not exist"):
+    with pytest.raises(UserError, match="does not exist"):
         run_report(tmp_path / "nowhere", tmp_path / "out")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(ValueError, match="no runs"):
+    with pytest.raises(UserError, match="no runs"):
         run_report(tmp_path / "empty", tmp_path / "out")
 
 

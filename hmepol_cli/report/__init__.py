@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hmepol_cli.errors import UserError
 from hmepol_cli.report.figures import make_figures
 from hmepol_cli.report.html import write_index
 from hmepol_cli.report.manifest import previous_report_files, write_manifest
@@ -33,11 +34,11 @@ def run_report(runs_root: Path, out_dir: Path) -> Path:
     """
     runs_root, out_dir = Path(runs_root), Path(out_dir)
     if not runs_root.is_dir():
-        raise ValueError(f"runs root {str(runs_root)!r} does not exist or is not a directory")
+        raise UserError(f"runs root {str(runs_root)!r} does not exist or is not a directory")
     previous = previous_report_files(out_dir)
     runs, skipped = discover_runs(runs_root)
     if not runs and not skipped:
-        raise ValueError(f"no runs under {str(runs_root)!r} (no directory holds a run.json)")
+        raise UserError(f"no runs under {str(runs_root)!r} (no directory holds a run.json)")
     runs, duplicates = drop_duplicate_seeds(runs)
     skipped = sorted(skipped + duplicates, key=lambda s: str(s.path))
     groups = group_runs(runs)

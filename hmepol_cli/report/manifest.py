@@ -12,7 +12,8 @@ from __future__ import annotations
 import json
 from pathlib import Path, PurePosixPath
 
-from hmepol_cli.checkpoint import write_json
+from hmepol_cli.errors import UserError
+from hmepol_cli.rundir import write_json
 
 MANIFEST = "report.json"
 
@@ -34,11 +35,11 @@ def previous_report_files(out_dir: Path) -> set[str]:
     if not out_dir.exists():
         return set()
     if not out_dir.is_dir():
-        raise ValueError(f"report folder {str(out_dir)!r} is a file; --out must name a folder")
+        raise UserError(f"report folder {str(out_dir)!r} is a file; --out must name a folder")
     manifest = out_dir / MANIFEST
     if not manifest.exists():
         if any(out_dir.iterdir()):
-            raise ValueError(
+            raise UserError(
                 f"report folder {str(out_dir)!r} is not empty and holds no {MANIFEST} (the list "
                 "of files an earlier report wrote, which a new report replaces): choose a new or "
                 "empty folder for --out"
@@ -49,7 +50,7 @@ def previous_report_files(out_dir: Path) -> set[str]:
     except (OSError, ValueError, KeyError, TypeError):
         files = None
     if not isinstance(files, list) or not all(isinstance(f, str) and _is_inside(f) for f in files):
-        raise ValueError(
+        raise UserError(
             f"{str(manifest)!r} is not a report manifest (a list of files inside "
             f"{str(out_dir)!r}): remove it, or choose a new or empty folder for --out"
         )

@@ -1,15 +1,9 @@
 """Find run directories, load what the trainer wrote, and group runs that differ only by seed.
 
-A run directory is any directory holding ``run.json`` (the trainer's contract):
-
-    .hydra/config.yaml   composed config
-    run.json             status, epochs_done, env, algo, policy, seed, wind, config names/probs,
-                         free_area and log_free_area per configuration
-    epochs.csv           one row per epoch (entropy, objective, entropy_c<c>, kl, ...)
-    batches.csv          one row per mini-batch (epoch, batch, config, entropy): which
-                         configurations an epoch drew, where its entropy_c<c> must be a number
-    eval/final.npz       positions_c<c>: (n_traj, T+1, 2) rollouts of the final policy
-    finetune.csv         fine-tuning runs only: epoch, target, config, return, init, algo_init, seed
+A run directory is any directory holding ``run.json`` (:mod:`hmepol_cli.rundir` is the
+contract): config.yaml, run.json (status, epochs_done, env, algo, policy, seed, wind, config
+names/probs, free areas), epochs.csv, batches.csv (which configurations an epoch drew, where its
+entropy_c<c> must be a number), eval/final.npz and, for fine-tuning runs, finetune.csv.
 
 Runs that cannot be used (unfinished, missing or corrupt files, a row cut short or not a number,
 a seed found twice) are skipped with a warning and listed, with the reason, in the report; the
@@ -32,9 +26,17 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from hmepol_cli.finetune import FINETUNE_CSV
 from hmepol_cli.report.stats import final_value
-from hmepol_cli.run_log import BATCHES_CSV, EPOCHS_CSV
+from hmepol_cli.rundir import (
+    BATCHES_CSV,
+    CONFIG,
+    EPOCHS_CSV,
+    EVAL_DIR,
+    FINAL_EVAL,
+    FINETUNE_CSV,
+    RUN_INFO,
+    load_positions,
+)
 
 # Config keys that say how a run was executed, not what was run: never a reason to split groups.
 RUN_SPECIFIC_KEYS = {
@@ -405,13 +407,8 @@ def _read_positions(path: Path, n_configs: int) -> dict[int, np.ndarray]:
     if not path.is_file():
         raise RunError("eval/final.npz is missing")
     try:
-        with np.load(path) as data:
-            positions = {
-                int(k.removeprefix("positions_c")): np.asarray(data[k], dtype=np.float32)
-                for k in data.files
-                if k.startswith("positions_c")
-            }
-    except Exception as err:
+        positions = load_positions(path)
+    except Exception as err:  # numpy raises several errors for a damaged archive
         raise RunError(f"eval/final.npz is unreadable ({type(err).__name__})") from None
     if not positions:
         raise RunError("eval/final.npz holds no positions_c<c> arrays")
@@ -431,7 +428,7 @@ def load_run(path: Path) -> Run:
     """Load one run directory; raise :class:`RunError` saying why it cannot be used."""
     path = Path(path)
     try:
-        meta = json.loads((path / "run.json").read_text())
+        meta = json.loads((path / RUN_INFO).read_text())
     except (OSError, ValueError) as err:
         raise RunError(f"run.json is unreadable ({type(err).__name__})") from None
     if not isinstance(meta, dict):
@@ -441,8 +438,8 @@ def load_run(path: Path) -> Run:
         raise RunError(
             f"unfinished (status {status!r}, {meta.get('epochs_done', '?')} epochs done)"
         )
-    # The run's own resolved copy first: Hydra rewrites .hydra/ when a run is resumed.
-    config_path = path / "config.yaml"
+    # The run's own resolved copy first (runs before it existed: Hydra's .hydra/config.yaml).
+    config_path = path / CONFIG
     if not config_path.is_file():
         config_path = path / ".hydra" / "config.yaml"
     if config_path.is_file():
@@ -474,7 +471,7 @@ def load_run(path: Path) -> Run:
     epochs = read_table(path / EPOCHS_CSV, REQUIRED_EPOCH_COLUMNS, NUMERIC_EPOCH_COLUMNS)
     check_entropies(epochs, _drawn_configurations(path / BATCHES_CSV))
     run.epochs = epochs.sort_values("epoch")
-    run.positions = _read_positions(path / "eval" / "final.npz", run.n_configs)
+    run.positions = _read_positions(path / EVAL_DIR / f"{FINAL_EVAL}.npz", run.n_configs)
     return run
 
 
@@ -483,7 +480,7 @@ def discover_runs(root: Path) -> tuple[list[Run], list[SkippedRun]]:
     root = Path(root)
     runs: list[Run] = []
     skipped: list[SkippedRun] = []
-    for marker in sorted(root.rglob("run.json")):
+    for marker in sorted(root.rglob(RUN_INFO)):
         try:
             runs.append(load_run(marker.parent))
         except RunError as err:
