@@ -184,7 +184,7 @@ def steps_per_second(
     """
     rng = np.random.default_rng(seed)
     plain_policy = PlainPolicy(policy, rng)
-    probs = np.asarray(world.config_probs)
+    probs = np.asarray(world.configuration_probs)
     start = time.perf_counter()
     for _ in range(trajectories):
         env = PlainWorld(world, int(rng.choice(len(probs), p=probs)), rng)
@@ -205,8 +205,8 @@ def check_same_physics(world: NavigationWorld, samples: int = 2000, seed: int = 
     free positions (hits, push-backs and reflections among them)."""
     rng = np.random.default_rng(seed)
     a = world.arena
-    configs = rng.integers(0, world.n_configs, samples)
-    plain_worlds = [PlainWorld(world, int(c), rng) for c in configs]
+    configurations = rng.integers(0, world.n_configurations, samples)
+    plain_worlds = [PlainWorld(world, int(c), rng) for c in configurations]
     positions = np.empty((samples, 2))
     for i, env in enumerate(plain_worlds):
         while True:
@@ -219,7 +219,7 @@ def check_same_physics(world: NavigationWorld, samples: int = 2000, seed: int = 
     batched = batched_world.move(
         torch.from_numpy(positions),
         torch.from_numpy(displacement),
-        torch.from_numpy(configs),
+        torch.from_numpy(configurations),
         torch.from_numpy(push),
     ).numpy()
     plain = np.stack(

@@ -47,7 +47,7 @@ from hmepol_cli import estimators  # noqa: E402
 from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
 from hmepol_cli.config import validate  # noqa: E402
 from hmepol_cli.envs import make_world  # noqa: E402
-from hmepol_cli.rollout import collect, draw_configs  # noqa: E402
+from hmepol_cli.rollout import collect, draw_configurations  # noqa: E402
 from hmepol_cli.trainer import Trainer, keep_freed_memory  # noqa: E402
 
 ENVS = ("slope", "corridor")
@@ -79,12 +79,14 @@ def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> 
     policy, generator = trainer.population.member(0), trainer.members[0].generator
     row = Row(env, algo, a.trajectories * a.horizon, forward_flops(policy))
 
-    configs = draw_configs(trainer.world, a.trajectories, a.batch_size, generator)[None]
+    configurations = draw_configurations(trainer.world, a.trajectories, a.batch_size, generator)[
+        None
+    ]
     rollouts = []
 
     def collection() -> None:
         rollouts.append(
-            collect(trainer.world, trainer.population, None, configs, a.horizon, [generator])
+            collect(trainer.world, trainer.population, None, configurations, a.horizon, [generator])
         )
 
     # The plain loop and the batched collection take turns, so that both see the same load.
@@ -130,8 +132,8 @@ def dtype_check(args: argparse.Namespace, work: Path) -> dict:
     t64 = trainer("float64")
     a, k = t64.cfg.algo, t64.cfg.estimator.k
     generator = t64.members[0].generator
-    configs = draw_configs(t64.world, a.trajectories, a.batch_size, generator)[None]
-    r64 = collect(t64.world, t64.population, None, configs, a.horizon, [generator])
+    configurations = draw_configurations(t64.world, a.trajectories, a.batch_size, generator)[None]
+    r64 = collect(t64.world, t64.population, None, configurations, a.horizon, [generator])
     r32 = dataclasses.replace(
         r64,
         states=r64.states.float(),

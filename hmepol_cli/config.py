@@ -1,4 +1,4 @@
-"""Typed run configuration: the schema every composed Hydra config is checked against.
+"""Typed run configs: the schema every composed Hydra config is checked against.
 
 The YAML files in ``conf/`` hold values; these dataclasses hold the types. A wrong type or an
 unknown key is refused by OmegaConf before any work starts, and :func:`validate` refuses values
@@ -151,9 +151,6 @@ def register_configs() -> None:
     ConfigStore.instance().store(name="finetune_schema", node=FinetuneConfig)
 
 
-ALGOS = ("mepol", "alphamepol", "hmepol")
-OBJECTIVES = ("mean", "cvar")
-POLICIES = ("markov", "recursive", "twohead", "gru", "lstm")
 DEVICES = ("cpu", "cuda", "auto")
 NEIGHBOURS = ("auto", "kdtree", "torch")
 DTYPES = ("float32", "float64")
@@ -188,11 +185,13 @@ def parse_bptt(value: str) -> int | None:
 
 def validate(cfg: DictConfig) -> None:
     """Refuse values of the right type that mean nothing; one line names the value and the rule."""
+    from hmepol_cli.algorithms import ALGORITHMS
     from hmepol_cli.envs import ENVIRONMENTS
+    from hmepol_cli.objectives import OBJECTIVES
 
     _one_of("env", cfg.env.name, tuple(ENVIRONMENTS))
-    _one_of("algo.name", cfg.algo.name, ALGOS)
-    _one_of("algo.objective", cfg.algo.objective, OBJECTIVES)
+    _one_of("algo.name", cfg.algo.name, tuple(ALGORITHMS))
+    _one_of("algo.objective", cfg.algo.objective, tuple(OBJECTIVES))
     _one_of("device", cfg.device, DEVICES)
     _one_of("dtype", cfg.dtype, DTYPES)
     _one_of("matmul_precision", cfg.matmul_precision, ("highest", "high", "medium"))
@@ -232,7 +231,9 @@ def validate(cfg: DictConfig) -> None:
 
 def validate_policy(policy: DictConfig) -> None:
     """The ``policy`` group's values (training and fine-tuning share it)."""
-    _one_of("policy", policy.name, POLICIES)
+    from hmepol_cli.policies import POLICIES
+
+    _one_of("policy", policy.name, tuple(POLICIES))
     parse_bptt(policy.bptt)
     _one_of("policy.encoder_activation", policy.encoder_activation, ("relu", "tanh"))
     _one_of("policy.init_weights", policy.init_weights, ("xavier", "torch"))

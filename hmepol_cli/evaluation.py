@@ -31,9 +31,9 @@ def rollout_positions(
     (member s with randomness from generators[s]). -> [{config: (n, T+1, 2)}] per member"""
     size = population.size
     positions: list[dict[int, np.ndarray]] = [{} for _ in range(size)]
-    for c in range(world.n_configs):
-        configs = torch.full((size, trajectories), c, dtype=torch.long, device=world.device)
-        rollout = collect(world, population, None, configs, horizon, generators)
+    for c in range(world.n_configurations):
+        configurations = torch.full((size, trajectories), c, dtype=torch.long, device=world.device)
+        rollout = collect(world, population, None, configurations, horizon, generators)
         states = rollout.states.float().cpu().numpy()
         for s in range(size):
             positions[s][c] = states[s]

@@ -27,9 +27,17 @@ def cvar(entropies: torch.Tensor, alpha: float) -> torch.Tensor:
     return torch.topk(entropies, count, dim=-1, largest=False).values.mean(dim=-1)
 
 
+# name -> objective(entropies, alpha); a new objective is a function and an entry here.
+OBJECTIVES = {
+    "mean": lambda entropies, alpha: mean(entropies),
+    "cvar": cvar,
+}
+
+
 def objective(entropies: torch.Tensor, name: str, alpha: float = 1.0) -> torch.Tensor:
-    if name == "mean":
-        return mean(entropies)
-    if name == "cvar":
-        return cvar(entropies, alpha)
-    raise ValueError(f"unknown objective {name!r}; choose mean or cvar")
+    try:
+        return OBJECTIVES[name](entropies, alpha)
+    except KeyError:
+        raise ValueError(
+            f"unknown objective {name!r}; choose one of: {', '.join(OBJECTIVES)}"
+        ) from None

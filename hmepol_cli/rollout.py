@@ -32,7 +32,7 @@ class Rollout:
     actions: torch.Tensor  # (S, N, T, a): a_t drawn at s_t (before clipping by the world)
     histories: torch.Tensor  # (S, N, T, H): h'_{t-1}, the history step t read (h'_{-1} = 0)
     log_probs: torch.Tensor  # (S, N, T): log pi(a_t | h_t) of the sampling policy
-    configs: torch.Tensor  # (S, N) long: configuration of each trajectory
+    configurations: torch.Tensor  # (S, N) long: configuration of each trajectory
     means: torch.Tensor  # (S, N, T, a): the sampling policy's mean action at each step
     log_std: torch.Tensor  # (S, a): the sampling policy's log-std
     # Goal tasks only (None otherwise): steps before the episode ended, and the step it reached
@@ -86,11 +86,11 @@ class Rollout:
         return self.alive.sum(dim=-1)
 
 
-def draw_configs(
+def draw_configurations(
     world: NavigationWorld, n_trajectories: int, batch_size: int, generator: torch.Generator
 ) -> torch.Tensor:
     """One configuration per mini-batch of B trajectories, drawn from p_M (thesis 4.2.3). (N,)"""
-    per_batch = world.sample_configs(n_trajectories // batch_size, generator)
+    per_batch = world.sample_configurations(n_trajectories // batch_size, generator)
     return per_batch.repeat_interleave(batch_size)
 
 
@@ -98,14 +98,14 @@ def collect(
     world: NavigationWorld,
     population: PolicyPopulation,
     members: torch.Tensor | None,
-    configs: torch.Tensor,
+    configurations: torch.Tensor,
     horizon: int,
     generators: Sequence[torch.Generator],
     deterministic: bool = False,
     graphs: dict | None = None,
     task: GoalTask | None = None,
 ) -> Rollout:
-    """Run one trajectory per entry of ``configs`` (S', N) for ``horizon`` steps, member i of
+    """Run one trajectory per entry of ``configurations`` (S', N) for ``horizon`` steps, member i of
     the selection ``members`` (None: all) acting in row i with randomness from generators[i].
 
     ``task``: a goal task (fine-tuning): an episode ends on the step it reaches the target, and
@@ -113,13 +113,13 @@ def collect(
     are captured once as a CUDA graph and replayed for every later rollout of the same shape (one
     launch instead of ~100 a step).
     """
-    s, n = configs.shape
+    s, n = configurations.shape
     device, dtype = world.device, world.dtype
     with torch.inference_mode():
         starts, action_noise, world_noise = [], [], []
         for i, generator in enumerate(generators):
             kw = dict(device=device, dtype=dtype, generator=generator)
-            starts.append(world.reset(configs[i], generator))
+            starts.append(world.reset(configurations[i], generator))
             action_noise.append(torch.randn(n, horizon, world.action_dim, **kw))
             world_noise.append(torch.rand(n, horizon, world.noise_size, **kw))
         position = torch.stack(starts)  # (S', N, d)
@@ -141,14 +141,14 @@ def collect(
         )
         if key not in graphs:
             graphs[key] = CapturedSteps(world, population, members, s, n, horizon, deterministic)
-        return graphs[key].run(position, action_noise, world_noise, configs, log_std)
+        return graphs[key].run(position, action_noise, world_noise, configurations, log_std)
     buffers = _storage(world, population, s, n, horizon)
     alive = success = None
     if task is not None:
         alive = torch.zeros(s, n, horizon, dtype=torch.bool, device=device)
         success = torch.zeros_like(alive)
     steps = _steps(world, population, members, position, action_noise, world_noise,
-                   configs.flatten(), deterministic, *buffers, alive=alive, success=success,
+                   configurations.flatten(), deterministic, *buffers, alive=alive, success=success,
                    task=task)  # fmt: skip
     states, actions, histories, log_probs, means = buffers
     if steps < horizon:  # every episode of the goal task ended early
@@ -159,8 +159,11 @@ def collect(
         )
         log_probs, means = log_probs[:, :, :steps], means[:, :, :steps]
         alive, success = alive[:, :, :steps], success[:, :, :steps]
-    return Rollout(states, actions, histories, log_probs, configs, means, log_std, alive, success,
-                   task.horizon if task is not None else None)  # fmt: skip
+    horizon_of_task = task.horizon if task is not None else None
+    return Rollout(
+        states, actions, histories, log_probs, configurations, means, log_std, alive, success,
+        horizon_of_task,
+    )  # fmt: skip
 
 
 def _storage(world: NavigationWorld, population: PolicyPopulation, s: int, n: int, horizon: int):
@@ -241,7 +244,7 @@ class CapturedSteps:
         self.position = torch.zeros(s, n, world.state_dim, **kw)
         self.action_noise = torch.zeros(s, n, horizon, world.action_dim, **kw)
         self.world_noise = torch.zeros(s * n, horizon, world.noise_size, **kw)
-        self.configs = torch.zeros(s * n, dtype=torch.long, device=world.device)
+        self.configurations = torch.zeros(s * n, dtype=torch.long, device=world.device)
         self.outputs = _storage(world, population, s, n, horizon)
         members = None if members is None else members.clone()
 
@@ -253,7 +256,7 @@ class CapturedSteps:
                 self.position,
                 self.action_noise,
                 self.world_noise,
-                self.configs,
+                self.configurations,
                 deterministic,
                 *self.outputs,
             )
@@ -272,33 +275,40 @@ class CapturedSteps:
         position: torch.Tensor,
         action_noise: torch.Tensor,
         world_noise: torch.Tensor,
-        configs: torch.Tensor,
+        configurations: torch.Tensor,
         log_std: torch.Tensor,
     ) -> Rollout:
         with torch.no_grad():
             self.position.copy_(position)
             self.action_noise.copy_(action_noise)
             self.world_noise.copy_(world_noise)
-            self.configs.copy_(configs.flatten())
+            self.configurations.copy_(configurations.flatten())
         self.graph.replay()
         states, actions, histories, log_probs, means = (t.clone() for t in self.outputs)
-        return Rollout(states, actions, histories, log_probs, configs, means, log_std)
+        return Rollout(states, actions, histories, log_probs, configurations, means, log_std)
 
 
 def collect_single(
     world: NavigationWorld,
     policy: Policy,
-    configs: torch.Tensor,
+    configurations: torch.Tensor,
     horizon: int,
     generator: torch.Generator,
     deterministic: bool = False,
     task: GoalTask | None = None,
 ) -> Rollout:
-    """The rollout of one policy (a population of one, with a copy of its weights): configs
+    """The rollout of one policy (a population of one, with a copy of its weights): configurations
     (N,) -> a Rollout of shapes (N, T, ...), without the member dimension."""
     population = PolicyPopulation([policy]).to(world.device, world.dtype)
     rollout = collect(
-        world, population, None, configs[None], horizon, [generator], deterministic, task=task
+        world,
+        population,
+        None,
+        configurations[None],
+        horizon,
+        [generator],
+        deterministic,
+        task=task,
     )
     return rollout.member(0)
 
@@ -311,5 +321,5 @@ def collect_episodes(
     generator: torch.Generator,
 ) -> Rollout:
     """``episodes`` episodes of one goal task (fine-tuning), stepped together. (N, T, ...)"""
-    configs = torch.full((episodes,), task.config, dtype=torch.long, device=world.device)
-    return collect_single(world, policy, configs, task.horizon, generator, task=task)
+    configurations = torch.full((episodes,), task.config, dtype=torch.long, device=world.device)
+    return collect_single(world, policy, configurations, task.horizon, generator, task=task)

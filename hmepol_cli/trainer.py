@@ -38,7 +38,7 @@ from hmepol_cli.evaluation import evaluate_and_save
 from hmepol_cli.objectives import objective
 from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
-from hmepol_cli.rollout import Rollout, collect, draw_configs
+from hmepol_cli.rollout import Rollout, collect, draw_configurations
 from hmepol_cli.rundir import (
     CHECKPOINT,
     EVAL_DIR,
@@ -69,7 +69,7 @@ class EpochStats:
     """One member's epoch."""
 
     entropies: np.ndarray  # (M,) on-policy kNN entropy of each mini-batch (eq. 2.6)
-    batch_configs: np.ndarray  # (M,) configuration of each mini-batch
+    batch_configurations: np.ndarray  # (M,) configuration of each mini-batch
     objective: float
     update: UpdateResult
     history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
@@ -182,7 +182,7 @@ class Trainer:
                 member.directory.open(self.device)
                 opened.append(member)
                 member.log = EpochLog(member.run_dir)
-                free = [self.world.free_area(c) for c in range(self.world.n_configs)]
+                free = [self.world.free_area(c) for c in range(self.world.n_configurations)]
                 member.directory.update(
                     env=self.cfg.env.name,
                     algo=self.cfg.algo.name,
@@ -191,8 +191,8 @@ class Trainer:
                     wind=getattr(self.world, "wind", None),  # worlds with a wind (corridor)
                     epochs=int(self.cfg.epochs),
                     epochs_done=int(member.directory.info().get("epochs_done", 0)),
-                    config_names=list(self.world.config_names),
-                    config_probs=list(self.world.config_probs),
+                    config_names=list(self.world.configuration_names),
+                    config_probs=list(self.world.configuration_probs),
                     free_area=free,
                     log_free_area=[math.log(f) for f in free],
                 )
@@ -218,7 +218,7 @@ class Trainer:
             self._epochs()
             survivors = [m for m in self.members if m.failure is None]
             if survivors:
-                self.evaluate(FINAL_EVAL)
+                self.save_evaluation(FINAL_EVAL)
             for member in survivors:
                 member.directory.update(status="finished", epochs_done=int(self.cfg.epochs))
         except BaseException as error:
@@ -274,7 +274,7 @@ class Trainer:
             )
             done = epoch + 1
             if cfg.eval.every and done % cfg.eval.every == 0 and done < cfg.epochs:
-                self.evaluate(f"epoch_{done:04d}")
+                self.save_evaluation(f"epoch_{done:04d}")
         bar.close()
 
     def _record(self, s: int, epoch: int, stats: EpochStats) -> str | None:
@@ -288,7 +288,7 @@ class Trainer:
             member.directory.fail(member.failure, epoch=epoch, last=member.log.last_finite)
             log.error("%s: %s", member.run_dir, member.failure)
             return f"seed {member.cfg.seed} failed"
-        member.log.append(*_epoch_rows(epoch, stats, self.world.n_configs))
+        member.log.append(*_epoch_rows(epoch, stats, self.world.n_configurations))
         self.save(s, epoch + 1)
         member.directory.update(epochs_done=epoch + 1)
         if stats.diverged:
@@ -326,15 +326,15 @@ class Trainer:
         members = torch.tensor(due, device=self.device)
         generators = [self.members[s].generator for s in due]
         t0 = time.perf_counter()
-        configs = torch.stack(
-            [draw_configs(self.world, a.trajectories, a.batch_size, g) for g in generators]
+        configurations = torch.stack(
+            [draw_configurations(self.world, a.trajectories, a.batch_size, g) for g in generators]
         )  # (S', N)
         selection = None if len(due) == self.size else members
         rollout = collect(
             self.world,
             self.population,
             selection,
-            configs,
+            configurations,
             a.horizon,
             generators,
             graphs=self.graphs,
@@ -362,14 +362,14 @@ class Trainer:
             ]
         ).cpu()
         entropies_host = entropies.double().cpu().numpy()
-        configs_host = configs[:, :: a.batch_size].cpu().numpy()
+        configs_host = configurations[:, :: a.batch_size].cpu().numpy()
         stats = []
         for i in range(len(due)):
             h_max, a_max, floor_i, objective_i = host[:, i].tolist()
             stats.append(
                 EpochStats(
                     entropies=entropies_host[i],
-                    batch_configs=configs_host[i],
+                    batch_configurations=configs_host[i],
                     objective=objective_i,
                     update=updates[i],
                     history_max=h_max,
@@ -396,7 +396,7 @@ class Trainer:
         m_batches = neighbours.radius.shape[0] // n_sel
         row_of = {int(s): i for i, s in enumerate(members.tolist())}  # member -> row of rollout
 
-        def evaluate(rows: torch.Tensor, behaviour: torch.Tensor | None = None):
+        def estimate(rows: torch.Tensor, behaviour: torch.Tensor | None = None):
             """The objective of the members in rollout rows ``rows``.
 
             -> (IW entropies (R, M), KL (R,), objective (R,), likelihoods (R, N, T))."""
@@ -439,7 +439,7 @@ class Trainer:
         lr = torch.full((size,), float(a.lr), dtype=torch.float64, device=self.device)
         off_iters, backtracks = [0] * size, [0] * size
         all_rows = torch.arange(n_sel, device=self.device)
-        entropies, kl, value, behaviour = evaluate(all_rows)
+        entropies, kl, value, behaviour = estimate(all_rows)
         grads = gradients(value)
         result_entropies = entropies.detach().double().cpu().numpy()
         result_kl = [0.0] * n_sel
@@ -449,7 +449,7 @@ class Trainer:
             optimizer.step(grads, lr, active)
             stepped = active.nonzero()[:, 0]
             rows = torch.tensor([row_of[int(s)] for s in stepped.tolist()], device=self.device)
-            entropies, kl, value, _ = evaluate(rows, behaviour)
+            entropies, kl, value, _ = estimate(rows, behaviour)
             new_grads = gradients(value)
             stepped_mask = torch.zeros(size, dtype=torch.bool, device=self.device)
             stepped_mask[stepped] = True
@@ -497,7 +497,7 @@ class Trainer:
         ]
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, name: str) -> list[Path]:
+    def save_evaluation(self, name: str) -> list[Path]:
         """Fresh rollouts of every member's policy in every configuration, saved to eval/."""
         e = self.cfg.eval
         # Generators of their own, so evaluation never shifts the training streams (exact resume).
@@ -531,12 +531,12 @@ class Trainer:
         )
 
 
-def _epoch_rows(epoch: int, stats: EpochStats, n_configs: int) -> tuple[dict, pd.DataFrame]:
+def _epoch_rows(epoch: int, stats: EpochStats, n_configurations: int) -> tuple[dict, pd.DataFrame]:
     """One member's epoch as its epochs.csv row and batches.csv rows."""
     u = stats.update
     row = {"epoch": epoch, "entropy": float(stats.entropies.mean()), "objective": stats.objective}
-    for c in range(n_configs):
-        drawn = stats.batch_configs == c
+    for c in range(n_configurations):
+        drawn = stats.batch_configurations == c
         row[f"entropy_c{c}"] = float(stats.entropies[drawn].mean()) if drawn.any() else math.nan
     row.update(
         entropy_iw=float(u.entropies.mean()),
@@ -558,7 +558,7 @@ def _epoch_rows(epoch: int, stats: EpochStats, n_configs: int) -> tuple[dict, pd
         {
             "epoch": epoch,
             "batch": range(len(stats.entropies)),
-            "config": stats.batch_configs,
+            "config": stats.batch_configurations,
             "entropy": stats.entropies,
         }
     )

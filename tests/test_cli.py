@@ -1,4 +1,4 @@
-"""End-to-end: the real command, configs, bad input, resume and reproducibility."""
+"""End-to-end: the real command, configurations, bad input, resume and reproducibility."""
 
 from __future__ import annotations
 

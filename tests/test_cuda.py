@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
-from hmepol_cli.rollout import collect, draw_configs
+from hmepol_cli.rollout import collect, draw_configurations
 from tests.test_cli import TINY
 from tests.test_trainer import compose_cfg
 
@@ -71,8 +71,8 @@ def test_vmap_on_the_gpu_equals_the_member_loop_on_the_gpu(tmp_path, algo, polic
         ]
         trainer = Trainer(cfgs, [tmp_path / vmap / f"seed{s}" for s in (0, 1, 2)])
         gens = [m.generator for m in trainer.members]
-        configs = torch.stack([draw_configs(trainer.world, 10, 5, g) for g in gens])
-        rollout = collect(trainer.world, trainer.population, None, configs, 40, gens)
+        configurations = torch.stack([draw_configurations(trainer.world, 10, 5, g) for g in gens])
+        rollout = collect(trainer.world, trainer.population, None, configurations, 40, gens)
         log_p = trainer.population.log_prob(
             None, rollout.inputs, rollout.actions, rollout.histories, trainer.bptt
         )
@@ -100,14 +100,14 @@ def test_a_captured_rollout_replays_what_the_steps_compute(tmp_path, algo, polic
     trainer.epoch()
     assert len(trainer.graphs) == 1
     gens = [m.generator for m in trainer.members]
-    configs = torch.stack([draw_configs(trainer.world, 10, 5, g) for g in gens])
+    configurations = torch.stack([draw_configurations(trainer.world, 10, 5, g) for g in gens])
     states = [g.get_state() for g in gens]
     replayed = collect(
-        trainer.world, trainer.population, None, configs, 40, gens, graphs=trainer.graphs
+        trainer.world, trainer.population, None, configurations, 40, gens, graphs=trainer.graphs
     )
     for g, state in zip(gens, states, strict=True):
         g.set_state(state)
-    stepped = collect(trainer.world, trainer.population, None, configs, 40, gens)
+    stepped = collect(trainer.world, trainer.population, None, configurations, 40, gens)
     assert len(trainer.graphs) == 1  # replayed, not captured again
     for field in ("states", "actions", "histories", "log_probs"):
         torch.testing.assert_close(

@@ -30,7 +30,7 @@ WORLDS: dict[str, NavigationWorld] = {
     "corridor": CorridorWorld(wind=0.4),
     "multigrid": MultiGridWorld(),
 }
-WORLD_CONFIGS = [(name, c) for name, w in WORLDS.items() for c in range(w.n_configs)]
+WORLD_CONFIGS = [(name, c) for name, w in WORLDS.items() for c in range(w.n_configurations)]
 
 
 def _gen(seed: int) -> torch.Generator:
@@ -112,15 +112,15 @@ def test_a_move_lands_free_and_never_passes_through_a_wall(which, seed, log_scal
         [free_positions(world, config, 64, g), near_walls(world, config, 64, g)]
     ).double()
     n = len(positions)
-    configs = torch.full((n,), config)
+    configurations = torch.full((n,), config)
     displacement = torch.randn(n, 2, generator=g, dtype=torch.float64) * span * 10.0**log_scale
     displacement[::4, 0] = 0.0  # a quarter of the moves along one axis only
     displacement[1::4, 1] = 0.0
     push = torch.rand(n, 2, generator=g, dtype=torch.float64)
     world64 = copy.copy(world).to("cpu", torch.float64)
-    new = world64.move(positions, displacement, configs, push)
+    new = world64.move(positions, displacement, configurations, push)
 
-    assert not world64.inside_wall(new, configs).any()
+    assert not world64.inside_wall(new, configurations).any()
     assert world64.inside_arena(new).all()
     p, d, end = positions.numpy(), displacement.numpy(), new.numpy()
     target = fold_xy(world, p + d)
@@ -292,10 +292,10 @@ def test_the_start_area_is_the_north_west_corner():
 def test_agents_start_uniformly_in_the_free_part_of_the_start_area(name):
     world = WORLDS[name]
     s = world.start
-    for c in range(world.n_configs):
-        configs = torch.full((4000,), c)
-        starts = world.reset(configs, _gen(c))
-        assert not world.inside_wall(starts, configs).any()
+    for c in range(world.n_configurations):
+        configurations = torch.full((4000,), c)
+        starts = world.reset(configurations, _gen(c))
+        assert not world.inside_wall(starts, configurations).any()
         assert ((starts[:, 0] >= s.x0) & (starts[:, 0] <= s.x1)).all()
         assert ((starts[:, 1] >= s.y0) & (starts[:, 1] <= s.y1)).all()
     if name == "multigrid":
@@ -352,9 +352,9 @@ def test_slopes_have_the_reference_direction_region_and_magnitude(name, config):
     n = 40000
     g = _gen(config)
     positions = free_positions(world, config, n, g)
-    configs = torch.full((n,), config)
+    configurations = torch.full((n,), config)
     noise = torch.rand(n, world.force_noise, generator=g)
-    force = world.force(positions, configs, noise).double()
+    force = world.force(positions, configurations, noise).double()
     if direction is None:
         assert (force == 0).all()
         return
@@ -375,21 +375,21 @@ def test_slopes_have_the_reference_direction_region_and_magnitude(name, config):
 
 def test_truncated_magnitudes_stay_in_range_at_the_extreme_quantiles():
     world = WORLDS["multigrid"]
-    configs = torch.arange(10).repeat_interleave(3)
+    configurations = torch.arange(10).repeat_interleave(3)
     noise = torch.tensor([0.0, 0.5, 1.0 - 2**-24]).repeat(10)
-    magnitude = world.slope_magnitude(configs, noise)
-    high = torch.tensor([s.high for s in world.slopes], dtype=torch.float64)[configs]
+    magnitude = world.slope_magnitude(configurations, noise)
+    high = torch.tensor([s.high for s in world.slopes], dtype=torch.float64)[configurations]
     assert (magnitude >= 0).all() and (magnitude <= high).all() and magnitude.isfinite().all()
 
 
 def zero_mean_rollout(world, config: int, std: float = 0.22, n: int = 100, steps: int = 400):
     """Positions s_1..s_T of n agents whose actions are N(0, std^2) per axis. (n * steps, 2)"""
     g = _gen(config)
-    configs = torch.full((n,), config)
-    positions = world.reset(configs, g)
+    configurations = torch.full((n,), config)
+    positions = world.reset(configurations, g)
     visited = []
     for _ in range(steps):
-        positions = world.step(positions, torch.randn(n, 2, generator=g) * std, configs, g)
+        positions = world.step(positions, torch.randn(n, 2, generator=g) * std, configurations, g)
         visited.append(positions)
     return torch.cat(visited)
 
@@ -398,7 +398,7 @@ def test_the_frequent_slope_carries_agents_away_and_the_rare_one_pins_them():
     """REFERENCE_WORLDS.md: under a zero-mean policy of std 0.22, config 0 (p = 0.8) spends
     ~90% of the steps in the southern half, config 1 (p = 0.2) stays in the northern half."""
     world = WORLDS["slope"]
-    assert world.config_probs == (0.8, 0.2)
+    assert world.configuration_probs == (0.8, 0.2)
     favourable = zero_mean_rollout(world, 0)
     unfavourable = zero_mean_rollout(world, 1)
     assert (favourable[:, 1] < 0).double().mean() >= 0.80
@@ -439,12 +439,12 @@ def test_agents_driven_into_walls_edges_and_corners_do_not_pile_up(name, config,
     world = WORLDS[name]
     g = _gen(1)
     n = 100
-    configs = torch.full((n,), config)
-    positions = world.reset(configs, g)
+    configurations = torch.full((n,), config)
+    positions = world.reset(configurations, g)
     visited = []
     for _ in range(400):
         actions = torch.tensor(action) + noise * torch.randn(n, 2, generator=g)
-        positions = world.step(positions, actions, configs, g)
+        positions = world.step(positions, actions, configurations, g)
         visited.append(positions)
     assert coinciding_share(torch.cat(visited)) < 0.001
 
@@ -465,8 +465,10 @@ def test_an_exactly_constant_action_against_an_edge_cycles():
 def test_configurations_are_drawn_from_p_m(name):
     world = WORLDS[name]
     n = 100_000
-    counts = torch.bincount(world.sample_configs(n, _gen(1)), minlength=world.n_configs)
-    p = np.asarray(world.config_probs)
+    counts = torch.bincount(
+        world.sample_configurations(n, _gen(1)), minlength=world.n_configurations
+    )
+    p = np.asarray(world.configuration_probs)
     assert p.sum() == pytest.approx(1.0)
     tolerance = 5 * np.sqrt(p * (1 - p) / n)
     assert (np.abs(counts.numpy() / n - p) < tolerance).all(), counts
@@ -487,7 +489,7 @@ def _corridor_run(
     x = stub.x0 + 0.01 + (stub.x1 - stub.x0 - 0.02) * torch.rand(n, generator=g)
     y = ROOM.y1 - 0.5 * torch.rand(n, generator=g)
     positions = torch.stack((x, y), 1)
-    configs = torch.full((n,), config)
+    configurations = torch.full((n,), config)
     path = [positions]
     for t in range(steps):
         wiggle = (torch.rand(n, generator=g) - 0.5) * 0.4
@@ -499,7 +501,7 @@ def _corridor_run(
             actions[:, 1] = 0.2
         else:
             actions = (torch.rand(n, 2, generator=g) - 0.5) * 0.4
-        positions = world.step(positions, actions, configs, g)
+        positions = world.step(positions, actions, configurations, g)
         path.append(positions)
     return torch.stack(path)
 
@@ -569,8 +571,8 @@ def test_the_wind_negates_between_configurations_and_config_0_is_clockwise():
     # Angular momentum about the centre, x * F_y - y * F_x, < 0 means clockwise.
     spin = x * clockwise[:, 1] - y * clockwise[:, 0]
     assert (spin[ring] < 0).all()
-    assert world.config_names == ("clockwise", "counterclockwise")
-    assert world.config_probs == (0.5, 0.5)
+    assert world.configuration_names == ("clockwise", "counterclockwise")
+    assert world.configuration_probs == (0.5, 0.5)
 
 
 # ---------------------------------------------------------------- Hydra config group
@@ -707,8 +709,8 @@ def test_no_ball_volume_hits_the_floor_on_the_initial_policy(name, batch_size):
     world = WORLDS[name]
     torch.manual_seed(0)
     policy = make_policy(PolicyConfig(), world.state_dim, world.action_dim)
-    configs = torch.arange(world.n_configs).repeat_interleave(batch_size).repeat(2)
-    rollout = collect_single(world, policy, configs, 400, _gen(0))
+    configurations = torch.arange(world.n_configurations).repeat_interleave(batch_size).repeat(2)
+    rollout = collect_single(world, policy, configurations, 400, _gen(0))
     particles = estimators.particles_by_batch(rollout.particles, batch_size)
     neighbours = estimators.nearest_neighbours(particles, 30)
     assert float(estimators.floor_share(neighbours, 1e-10)) == 0.0

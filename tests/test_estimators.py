@@ -25,7 +25,7 @@ from hmepol_cli.estimators import (
     nearest_neighbours,
     particles_by_batch,
 )
-from hmepol_cli.rollout import collect_single, draw_configs
+from hmepol_cli.rollout import collect_single, draw_configurations
 from tests.conftest import check_gradient_by_central_differences
 
 F64 = torch.float64
@@ -361,8 +361,8 @@ def test_particles_line_up_with_their_weights():
 def test_iw_entropy_gradient_matches_finite_differences(name, bptt, world64, tiny_policy):
     # float64 throughout; 6 trajectories of 15 steps in the slope world, mini-batches of 3, k = 5.
     policy = tiny_policy(name)
-    configs = draw_configs(world64, 6, 3, gen(11))
-    rollout = collect_single(world64, policy, configs, horizon=15, generator=gen(12))
+    configurations = draw_configurations(world64, 6, 3, gen(11))
+    rollout = collect_single(world64, policy, configurations, horizon=15, generator=gen(12))
     nb = nearest_neighbours(particles_by_batch(rollout.particles, 3), 5)
     with torch.no_grad():  # evaluate away from the sampling policy, so the weights vary
         for param in policy.parameters():

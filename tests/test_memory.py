@@ -72,7 +72,7 @@ def concatenate(rollouts: list[Rollout]) -> Rollout:
     fields = {"states": torch.cat([padded(r.states, steps + 1) for r in rollouts])}
     for key in ("actions", "means", "histories", "log_probs", "alive", "success"):
         fields[key] = torch.cat([padded(getattr(r, key), steps) for r in rollouts])
-    fields["configs"] = torch.cat([r.configs for r in rollouts])
+    fields["configurations"] = torch.cat([r.configurations for r in rollouts])
     return Rollout(**fields, log_std=rollouts[0].log_std, horizon=rollouts[0].horizon)
 
 
@@ -101,14 +101,14 @@ def train(policy: Policy, seed: int = SEED, epochs: int = EPOCHS) -> list[float]
 def test_the_cue_is_gone_after_the_first_step():
     world = CueCorridorWorld()
     gen = torch.Generator().manual_seed(0)
-    configs = torch.tensor([0, 1]).repeat_interleave(50)
-    start = world.reset(configs, gen)
+    configurations = torch.tensor([0, 1]).repeat_interleave(50)
+    start = world.reset(configurations, gen)
     assert (start[:50, 1] > 0.3).all() and (start[50:, 1] < -0.3).all()  # the cue
     actions = torch.randn(100, 2, generator=gen)
-    assert torch.equal(world.step(start, actions, configs), torch.zeros(100, 2))
+    assert torch.equal(world.step(start, actions, configurations), torch.zeros(100, 2))
     position = torch.zeros(100, 2)
     for _ in range(20):  # the walls keep every agent in the corridor
-        position = world.step(position, torch.randn(100, 2, generator=gen), configs)
+        position = world.step(position, torch.randn(100, 2, generator=gen), configurations)
         assert (position[:, 1].abs() <= 0.2).all()
 
 
@@ -117,14 +117,14 @@ def test_no_episode_visits_both_goals():
     moves = MEMORY_HORIZON - 1
     dx = torch.tensor(list(itertools.product((-0.2, 0.0, 0.2), repeat=moves)))  # (3^7, 7)
     world = CueCorridorWorld()
-    configs = torch.zeros(dx.shape[0], dtype=torch.long)
+    configurations = torch.zeros(dx.shape[0], dtype=torch.long)
     position = torch.zeros(dx.shape[0], 2)
     left_task, right_task = goal_tasks()
     left = torch.zeros(dx.shape[0], dtype=torch.bool)
     right = torch.zeros_like(left)
     for t in range(moves):
         action = torch.stack((dx[:, t], torch.zeros_like(dx[:, t])), dim=-1)
-        position = world.step(position, action, configs)
+        position = world.step(position, action, configurations)
         left |= left_task.reached(position)
         right |= right_task.reached(position)
     assert left.any() and right.any() and not (left & right).any()

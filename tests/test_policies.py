@@ -15,7 +15,7 @@ from hmepol_cli.config import PolicyConfig
 from hmepol_cli.envs.slope import SlopeWorld
 from hmepol_cli.policies import make_policy
 from hmepol_cli.policies.markov import MarkovPolicy
-from hmepol_cli.rollout import Rollout, collect_single, draw_configs
+from hmepol_cli.rollout import Rollout, collect_single, draw_configurations
 from tests.conftest import check_gradient_by_central_differences
 
 F64 = torch.float64
@@ -29,8 +29,8 @@ def gen(seed: int) -> torch.Generator:
 
 
 def roll(world, policy, seed: int = 0, n: int = N, horizon: int = T) -> Rollout:
-    configs = draw_configs(world, n, batch_size=2, generator=gen(seed))
-    return collect_single(world, policy, configs, horizon, generator=gen(seed + 1))
+    configurations = draw_configurations(world, n, batch_size=2, generator=gen(seed))
+    return collect_single(world, policy, configurations, horizon, generator=gen(seed + 1))
 
 
 def jiggle(policy, scale: float = 0.3, seed: int = 99):
@@ -44,7 +44,7 @@ def jiggle(policy, scale: float = 0.3, seed: int = 99):
 
 
 def assert_same_rollout(a: Rollout, b: Rollout, **tol):
-    for field in ("states", "actions", "histories", "log_probs", "configs"):
+    for field in ("states", "actions", "histories", "log_probs", "configurations"):
         torch.testing.assert_close(getattr(a, field), getattr(b, field), **tol)
 
 

@@ -39,8 +39,8 @@ def write_run(
     epochs: int = 20,
     final: float = 1.0,
     status: str = "finished",
-    config_names: tuple[str, ...] = ("south", "north"),
-    config_probs: tuple[float, ...] = (0.8, 0.2),
+    configuration_names: tuple[str, ...] = ("south", "north"),
+    configuration_probs: tuple[float, ...] = (0.8, 0.2),
     free_area: float = 3.04,
     n_traj: int = 10,
     horizon: int = 40,
@@ -69,7 +69,7 @@ def write_run(
         f"seed: {seed}\nepochs: {epochs}\nwind: {wind}\nresume: null\nprogress: {seed % 2 == 0}\n"
         f"device: cpu\n{extra_config}"
     )
-    n_configs = len(config_names)
+    n_configurations = len(configuration_names)
     (run / "run.json").write_text(
         json.dumps(
             {
@@ -80,18 +80,18 @@ def write_run(
                 "policy": policy,
                 "seed": seed,
                 "wind": wind,
-                "config_names": list(config_names),
-                "config_probs": list(config_probs),
-                "free_area": [free_area] * n_configs,
-                "log_free_area": [math.log(free_area)] * n_configs,
+                "config_names": list(configuration_names),
+                "config_probs": list(configuration_probs),
+                "free_area": [free_area] * n_configurations,
+                "log_free_area": [math.log(free_area)] * n_configurations,
             }
         )
     )
     ramp = np.linspace(0.0, 1.0, done)
     table = {"epoch": np.arange(done), "entropy": final * ramp, "objective": final * ramp}
     if config_finals is None:
-        config_finals = tuple(final - 0.1 * c for c in range(n_configs))
-    for c in range(n_configs):
+        config_finals = tuple(final - 0.1 * c for c in range(n_configurations))
+    for c in range(n_configurations):
         table[f"entropy_c{c}"] = config_finals[c] * ramp
     table |= {
         "entropy_iw": final * ramp,
@@ -104,14 +104,14 @@ def write_run(
     }
     pd.DataFrame(table).to_csv(run / "epochs.csv", index=False)
     rng = np.random.default_rng(seed)
-    steps = rng.normal(0, 0.05 * extent, size=(n_configs, n_traj, horizon, 2))
-    start = np.full((n_configs, n_traj, 1, 2), -0.75 * extent)
+    steps = rng.normal(0, 0.05 * extent, size=(n_configurations, n_traj, horizon, 2))
+    start = np.full((n_configurations, n_traj, 1, 2), -0.75 * extent)
     positions = np.clip(
         np.concatenate([start, start + steps.cumsum(axis=2)], axis=2), -extent, extent
     )
     np.savez(
         run / "eval" / "final.npz",
-        **{f"positions_c{c}": positions[c].astype(np.float32) for c in range(n_configs)},
+        **{f"positions_c{c}": positions[c].astype(np.float32) for c in range(n_configurations)},
     )
     return run
 
@@ -120,8 +120,8 @@ def write_batches(run: Path, drawn: dict[int, tuple[int, ...]]) -> None:
     """batches.csv of a run: one mini-batch of each configuration ``drawn[epoch]`` holds."""
     rows = [
         {"epoch": epoch, "batch": b, "config": config, "entropy": 0.5}
-        for epoch, configs in drawn.items()
-        for b, config in enumerate(configs)
+        for epoch, configurations in drawn.items()
+        for b, config in enumerate(configurations)
     ]
     pd.DataFrame(rows).to_csv(run / "batches.csv", index=False)
 
@@ -380,7 +380,9 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
         assert f'src="figures/{name}"' in page
     summary = pd.read_csv(out / "summary.csv")
     assert set(summary["n_seeds"]) == {2}
-    assert len(pd.read_csv(out / "differences.csv")) == 3 * 3  # 3 pairs x (average + 2 configs)
+    assert (
+        len(pd.read_csv(out / "differences.csv")) == 3 * 3
+    )  # 3 pairs x (average + 2 configurations)
     finetune = pd.read_csv(out / "finetune.csv")
     hm = finetune[(finetune["init"] == "HMepol") & (finetune["config"] == 0)].iloc[0]
     assert hm["n_curves"] == 6 and hm["first_epoch_reaching_mepol_final"] < 9

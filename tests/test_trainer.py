@@ -15,7 +15,7 @@ from hydra.core.global_hydra import GlobalHydra
 
 from hmepol_cli import estimators
 from hmepol_cli.cli import register_configs  # noqa: F401  (schema and resolvers)
-from hmepol_cli.rollout import collect, draw_configs
+from hmepol_cli.rollout import collect, draw_configurations
 from hmepol_cli.trainer import Trainer
 from tests.test_cli import TINY
 
@@ -87,7 +87,7 @@ def test_each_member_of_a_population_trains_exactly_as_its_own_run(tmp_path, alg
             (alone,) = run.epoch()
             mine = members[s]
             np.testing.assert_array_equal(mine.entropies, alone.entropies)
-            np.testing.assert_array_equal(mine.batch_configs, alone.batch_configs)
+            np.testing.assert_array_equal(mine.batch_configurations, alone.batch_configurations)
             np.testing.assert_array_equal(mine.update.entropies, alone.update.entropies)
             assert (mine.update.kl, mine.update.off_iters, mine.update.backtracks) == (
                 alone.update.kl,
@@ -113,8 +113,8 @@ def test_vmap_and_the_member_loop_compute_the_same_function(tmp_path, name, bptt
     rollouts, values = [], []
     for trainer in (looped, mapped):
         gens = [m.generator for m in trainer.members]
-        configs = torch.stack([draw_configs(trainer.world, 10, 5, g) for g in gens])
-        rollout = collect(trainer.world, trainer.population, None, configs, 40, gens)
+        configurations = torch.stack([draw_configurations(trainer.world, 10, 5, g) for g in gens])
+        rollout = collect(trainer.world, trainer.population, None, configurations, 40, gens)
         log_p = trainer.population.log_prob(
             None, rollout.inputs, rollout.actions, rollout.histories, trainer.bptt
         )
@@ -171,8 +171,8 @@ def first_step(tmp_path, trust_region: str, kl_threshold: float):
         params["encoder.0.weight"][0, :, 2:] = 0.99 * eye
         params["encoder.0.bias"][0] = 0.05
     gen = trainer.members[0].generator
-    configs = draw_configs(trainer.world, 10, 5, gen)[None]
-    rollout = collect(trainer.world, trainer.population, None, configs, 200, [gen])
+    configurations = draw_configurations(trainer.world, 10, 5, gen)[None]
+    rollout = collect(trainer.world, trainer.population, None, configurations, 200, [gen])
     particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
     neighbours = estimators.nearest_neighbours(particles, 5)
     (result,) = trainer.trust_region_update(torch.tensor([0]), rollout, neighbours)

@@ -58,8 +58,8 @@ class OpenWorld(NavigationWorld):
     name = "open"
     arena = Box(-1.0, -1.0, 1.0, 1.0)
     start = Box(-0.9, -0.1, -0.7, 0.1)
-    config_names = ("open",)
-    config_probs = (1.0,)
+    configuration_names = ("open",)
+    configuration_probs = (1.0,)
     walls = ((),)
 
 

@@ -2,30 +2,28 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 from hmepol_cli.envs.base import Box, NavigationWorld
 from hmepol_cli.envs.corridor import CorridorWorld
 from hmepol_cli.envs.multigrid import MultiGridWorld
 from hmepol_cli.envs.slope import SlopeWorld
 
-# name -> factory(env_config) ; a new world is one module plus one entry here and one YAML file.
-ENVIRONMENTS: dict[str, Callable[..., NavigationWorld]] = {
-    "slope": lambda cfg: SlopeWorld(),
-    "corridor": lambda cfg: CorridorWorld(wind=cfg.wind),
-    "multigrid": lambda cfg: MultiGridWorld(),
+# name -> world class; a new world is one module, one entry here and one conf/env/<name>.yaml.
+ENVIRONMENTS: dict[str, type[NavigationWorld]] = {
+    "slope": SlopeWorld,
+    "corridor": CorridorWorld,
+    "multigrid": MultiGridWorld,
 }
 
 
 def make_world(env_cfg) -> NavigationWorld:
     """Build the world named by ``env_cfg.name`` (an EnvConfig or DictConfig)."""
     try:
-        factory = ENVIRONMENTS[env_cfg.name]
+        world = ENVIRONMENTS[env_cfg.name]
     except KeyError:
         raise ValueError(
             f"unknown env {env_cfg.name!r}; choose one of: {', '.join(ENVIRONMENTS)}"
         ) from None
-    return factory(env_cfg)
+    return world.from_config(env_cfg)
 
 
 # Gymnasium ids (hmepol/Slope-v0, ...) are registered on import; registering twice is a no-op.

@@ -56,7 +56,8 @@ class Box:
 class NavigationWorld:
     """A class of 2-D navigation configurations, stepped in batches.
 
-    Subclasses set ``name``, ``arena``, ``start``, ``config_names``, ``config_probs`` and
+    Subclasses set ``name``, ``arena``, ``start``, ``configuration_names``,
+    ``configuration_probs`` and
     ``walls`` (one tuple of :class:`Box` per configuration), and, for a force, ``force_noise``
     (uniforms it needs per agent and step) and :meth:`force`.
     """
@@ -68,8 +69,8 @@ class NavigationWorld:
     force_noise: int = 0
     arena: Box
     start: Box
-    config_names: tuple[str, ...]
-    config_probs: tuple[float, ...]
+    configuration_names: tuple[str, ...]
+    configuration_probs: tuple[float, ...]
     walls: tuple[tuple[Box, ...], ...]
 
     def __init__(self) -> None:
@@ -79,8 +80,8 @@ class NavigationWorld:
 
     # ------------------------------------------------------------------ set-up
     @property
-    def n_configs(self) -> int:
-        return len(self.config_probs)
+    def n_configurations(self) -> int:
+        return len(self.configuration_probs)
 
     @property
     def noise_size(self) -> int:
@@ -92,6 +93,25 @@ class NavigationWorld:
         """Largest push-back per axis after hitting a wall (reference: max_action / 2)."""
         return self.max_action / 2
 
+    @classmethod
+    def from_config(cls, env_cfg) -> NavigationWorld:
+        """The world of an ``env`` config group entry (name, and wind for the corridor)."""
+        return cls()
+
+    # ------------------------------------------------------------------ how it looks
+    def describe(self, config: int) -> str:
+        """One line on the force of a configuration (no force: empty)."""
+        return ""
+
+    def force_region(self, config: int) -> Box | None:
+        """The part of the arena the force acts on, shaded in pictures (None: none shaded)."""
+        return None
+
+    def arrow_candidates(self, config: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], float]:
+        """Lattices of arrows showing the force: [(centres (M, 2), directions (M, 2))] and the
+        arrows' length; the picture keeps those that touch no wall."""
+        return [], 0.0
+
     def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> NavigationWorld:
         self.device, self.dtype = torch.device(device), dtype
         self._build_tensors()
@@ -101,7 +121,7 @@ class NavigationWorld:
         kw = dict(device=self.device, dtype=self.dtype)
         most = max(1, max(len(w) for w in self.walls))
         # Padding rectangles lie far outside the arena, beyond the reach of any move.
-        table = np.full((self.n_configs, most, 4), FAR_AWAY)
+        table = np.full((self.n_configurations, most, 4), FAR_AWAY)
         for c, boxes in enumerate(self.walls):
             for i, b in enumerate(boxes):
                 table[c, i] = (b.x0, b.y0, b.x1, b.y1)
@@ -110,13 +130,15 @@ class NavigationWorld:
         # Configurations that share their walls (slope, corridor) need no per-agent gather.
         shared = len(set(self.walls)) == 1
         self._shared_obstacles = self._obstacles[:1] if shared else None
-        self._probs = torch.tensor(self.config_probs, device=self.device, dtype=torch.float64)
+        self._probs = torch.tensor(
+            self.configuration_probs, device=self.device, dtype=torch.float64
+        )
         self._arena_lo = torch.tensor([self.arena.x0, self.arena.y0], **kw)
         self._arena_hi = torch.tensor([self.arena.x1, self.arena.y1], **kw)
         self._start_lo = torch.tensor([self.start.x0, self.start.y0], **kw)
         self._start_hi = torch.tensor([self.start.x1, self.start.y1], **kw)
         self._start_fallback = torch.tensor(
-            [self._free_start_point(c) for c in range(self.n_configs)], **kw
+            [self._free_start_point(c) for c in range(self.n_configurations)], **kw
         )
 
     def _free_start_point(self, config: int) -> tuple[float, float]:
@@ -131,36 +153,42 @@ class NavigationWorld:
         raise ValueError(f"{self.name} config {config}: the start area lies inside walls")
 
     # ------------------------------------------------------------------ dynamics
-    def sample_configs(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    def sample_configurations(
+        self, n: int, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """Draw n configuration indices from p_M. (n,) long."""
         return torch.multinomial(self._probs, n, replacement=True, generator=generator)
 
     def reset(
-        self, configs: torch.Tensor, generator: torch.Generator | None = None
+        self, configurations: torch.Tensor, generator: torch.Generator | None = None
     ) -> torch.Tensor:
-        """Initial positions, uniform over the free part of the start area. configs (N,) -> (N, 2)
+        """Initial positions, uniform over the free part of the start area.
+
+        configurations (N,) -> (N, 2)
 
         A fixed number of candidates per agent (the first free one is taken), so the random
         stream advances by the same amount whatever the walls.
         """
-        n = configs.shape[0]
+        n = configurations.shape[0]
         u = torch.rand(
             n, START_CANDIDATES, 2, device=self.device, dtype=self.dtype, generator=generator
         )
         candidates = self._start_lo + u * (self._start_hi - self._start_lo)  # (N, K, 2)
         free = ~self.inside_wall(
-            candidates.reshape(-1, 2), configs.repeat_interleave(START_CANDIDATES)
+            candidates.reshape(-1, 2), configurations.repeat_interleave(START_CANDIDATES)
         ).view(n, START_CANDIDATES)
         first = free.to(torch.uint8).argmax(dim=1)
         chosen = candidates[torch.arange(n, device=self.device), first]
-        return torch.where(free.any(dim=1, keepdim=True), chosen, self._start_fallback[configs])
+        return torch.where(
+            free.any(dim=1, keepdim=True), chosen, self._start_fallback[configurations]
+        )
 
     def force(
-        self, positions: torch.Tensor, configs: torch.Tensor, noise: torch.Tensor
+        self, positions: torch.Tensor, configurations: torch.Tensor, noise: torch.Tensor
     ) -> torch.Tensor:
         """External displacement (slope, wind) at each position, added to the clipped action.
 
-        positions (N, 2), configs (N,), noise (N, force_noise) uniform in [0, 1) -> (N, 2).
+        positions (N, 2), configurations (N,), noise (N, force_noise) uniform in [0, 1) -> (N, 2).
         """
         return torch.zeros_like(positions)
 
@@ -174,34 +202,36 @@ class NavigationWorld:
         self,
         positions: torch.Tensor,
         actions: torch.Tensor,
-        configs: torch.Tensor,
+        configurations: torch.Tensor,
         generator: torch.Generator | None = None,
         *,
         noise: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Next positions: clipped action plus the configuration's force, off edges and walls.
 
-        positions (N, 2), actions (N, 2), configs (N,), noise (N, noise_size) -> (N, 2).
+        positions (N, 2), actions (N, 2), configurations (N,), noise (N, noise_size) -> (N, 2).
         """
         if noise is None:
             noise = self.draw_noise(positions.shape[0], generator)
         displacement = actions.clamp(-self.max_action, self.max_action)
-        displacement = displacement + self.force(positions, configs, noise[:, PUSH_BACK_NOISE:])
-        return self.move(positions, displacement, configs, noise[:, :PUSH_BACK_NOISE])
+        displacement = displacement + self.force(
+            positions, configurations, noise[:, PUSH_BACK_NOISE:]
+        )
+        return self.move(positions, displacement, configurations, noise[:, :PUSH_BACK_NOISE])
 
     def move(
         self,
         positions: torch.Tensor,
         displacement: torch.Tensor,
-        configs: torch.Tensor,
+        configurations: torch.Tensor,
         push_noise: torch.Tensor,
     ) -> torch.Tensor:
         """Apply a displacement with the reference's edge reflection and wall push-back.
 
-        positions (N, 2), displacement (N, 2), configs (N,), push_noise (N, 2) in [0, 1).
+        positions (N, 2), displacement (N, 2), configurations (N,), push_noise (N, 2) in [0, 1).
         """
         if self._shared_obstacles is None:
-            obstacles = self._obstacles.index_select(0, configs)  # (N, 9W, 4)
+            obstacles = self._obstacles.index_select(0, configurations)  # (N, 9W, 4)
         else:
             obstacles = self._shared_obstacles  # (1, 9W, 4)
         moved = self._reflect(positions + displacement)
@@ -234,10 +264,10 @@ class NavigationWorld:
         return _segment_touches_box(positions, displacement, obstacles) | too_long
 
     # ------------------------------------------------------------------ geometry
-    def inside_wall(self, positions: torch.Tensor, configs: torch.Tensor) -> torch.Tensor:
+    def inside_wall(self, positions: torch.Tensor, configurations: torch.Tensor) -> torch.Tensor:
         """True where a position lies in (or on the boundary of) one of its configuration's
-        walls. positions (N, 2), configs (N,) -> (N,)"""
-        walls = self._walls[configs]
+        walls. positions (N, 2), configurations (N,) -> (N,)"""
+        walls = self._walls[configurations]
         x, y = positions[:, :1], positions[:, 1:]
         inside = (
             (x >= walls[..., 0])
@@ -271,9 +301,17 @@ class NavigationWorld:
         highest entropy any visitation can reach.
         """
         if config is None:
-            return min(self.free_area(c) for c in range(self.n_configs))
+            return min(self.free_area(c) for c in range(self.n_configurations))
         mask = self.free_mask(config)
         return float(mask.mean()) * self.arena.area
+
+
+def lattice(x0: float, y0: float, x1: float, y1: float, n: int) -> np.ndarray:
+    """Centres of an n x n grid of cells over the rectangle, (n * n, 2)."""
+    xs = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
+    ys = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
+    gx, gy = np.meshgrid(xs, ys)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
 
 
 def _with_mirror_images(walls: np.ndarray, arena: Box) -> np.ndarray:

@@ -53,9 +53,10 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
-from hmepol_cli.envs.base import Box, NavigationWorld
+from hmepol_cli.envs.base import Box, NavigationWorld, lattice
 
 ARENA = Box(-6.0, -6.0, 6.0, 6.0)
 ROOM = Box(-2.0, -2.0, 2.0, 2.0)  # interior, wind-free
@@ -103,8 +104,8 @@ class CorridorWorld(NavigationWorld):
     arena = ARENA
     start = START
     room = ROOM
-    config_names = ("clockwise", "counterclockwise")
-    config_probs = (0.5, 0.5)
+    configuration_names = ("clockwise", "counterclockwise")
+    configuration_probs = (0.5, 0.5)
     walls = (WALLS, WALLS)
     # One (Box, direction) list per configuration; config 1 is the exact negation of config 0.
     wind_field = (
@@ -112,9 +113,28 @@ class CorridorWorld(NavigationWorld):
         tuple((box, (-dx, -dy)) for box, (dx, dy) in CLOCKWISE_FIELD),
     )
 
+    @classmethod
+    def from_config(cls, env_cfg) -> CorridorWorld:
+        wind = getattr(env_cfg, "wind", None)
+        return cls(wind=DEFAULT_WIND if wind is None else wind)
+
+    def describe(self, config: int) -> str:
+        return f"wind {self.wind:g} in the corridor only" if self.wind > 0 else "no wind"
+
+    def arrow_candidates(self, config: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], float]:
+        """An arrow every 0.75: one in every stub, four across the ring."""
+        if self.wind == 0:
+            return [], 0.0
+        a, n = self.arena, 16
+        points = lattice(a.x0, a.y0, a.x1, a.y1, n)
+        at = torch.tensor(points, dtype=self.dtype, device=self.device)
+        configurations = torch.full((len(points),), config, dtype=torch.long, device=self.device)
+        directions = self.wind_direction(at, configurations).cpu().double().numpy()
+        return [(points, directions)], 0.55 * (a.x1 - a.x0) / n
+
     def __init__(self, wind: float = DEFAULT_WIND) -> None:
-        if not wind >= 0:
-            raise ValueError(f"wind={wind!r} must be a number >= 0")
+        if not 0 <= wind < math.inf:
+            raise ValueError(f"wind={wind!r} must be a finite number >= 0")
         self.wind = float(wind)
         super().__init__()
 
@@ -126,20 +146,22 @@ class CorridorWorld(NavigationWorld):
         self._wind_boxes = torch.tensor(boxes, **kw)  # (C, K, 4)
         self._wind_dirs = torch.tensor(directions, **kw)  # (C, K, 2)
 
-    def wind_direction(self, positions: torch.Tensor, configs: torch.Tensor) -> torch.Tensor:
+    def wind_direction(self, positions: torch.Tensor, configurations: torch.Tensor) -> torch.Tensor:
         """Unit direction of the wind at each position, zero in the room. (N, 2), (N,) -> (N, 2)."""
-        boxes = self._wind_boxes[configs]  # (N, K, 4)
+        boxes = self._wind_boxes[configurations]  # (N, K, 4)
         x, y = positions[:, :1], positions[:, 1:]
         holds = (x >= boxes[..., 0]) & (x <= boxes[..., 2])
         holds &= (y >= boxes[..., 1]) & (y <= boxes[..., 3])
         first = holds.to(positions.dtype).argmax(dim=-1)  # the first rectangle that holds it
-        direction = self._wind_dirs[configs].gather(1, first[:, None, None].expand(-1, 1, 2))[:, 0]
+        direction = self._wind_dirs[configurations].gather(
+            1, first[:, None, None].expand(-1, 1, 2)
+        )[:, 0]
         r = self.room
         in_room = (x >= r.x0) & (x <= r.x1) & (y >= r.y0) & (y <= r.y1)
         in_corridor = holds.any(dim=-1, keepdim=True) & ~in_room
         return torch.where(in_corridor, direction, torch.zeros_like(direction))
 
     def force(
-        self, positions: torch.Tensor, configs: torch.Tensor, noise: torch.Tensor
+        self, positions: torch.Tensor, configurations: torch.Tensor, noise: torch.Tensor
     ) -> torch.Tensor:
-        return self.wind * self.wind_direction(positions, configs)
+        return self.wind * self.wind_direction(positions, configurations)

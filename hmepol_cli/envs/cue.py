@@ -58,32 +58,32 @@ class CueCorridorWorld(NavigationWorld):
     name = "cue"
     arena = ARENA
     start = Box(-0.1, -0.9, 0.1, 0.9)  # spans both pads, so drawn targets avoid them
-    config_names = ("left", "right")
-    config_probs = (0.5, 0.5)
+    configuration_names = ("left", "right")
+    configuration_probs = (0.5, 0.5)
     walls = (WALLS, WALLS)
 
     def reset(
-        self, configs: torch.Tensor, generator: torch.Generator | None = None
+        self, configurations: torch.Tensor, generator: torch.Generator | None = None
     ) -> torch.Tensor:
-        """Uniform in the pad of each configuration. configs (N,) -> (N, 2)."""
+        """Uniform in the pad of each configuration. configurations (N,) -> (N, 2)."""
         u = torch.rand(
-            configs.shape[0], 2, device=self.device, dtype=self.dtype, generator=generator
+            configurations.shape[0], 2, device=self.device, dtype=self.dtype, generator=generator
         )
         pads = torch.tensor(
             [[p.x0, p.y0, p.x1, p.y1] for p in PADS], device=self.device, dtype=self.dtype
-        )[configs]  # (N, 4)
+        )[configurations]  # (N, 4)
         return pads[:, :2] + u * (pads[:, 2:] - pads[:, :2])
 
     def step(
         self,
         positions: torch.Tensor,
         actions: torch.Tensor,
-        configs: torch.Tensor,
+        configurations: torch.Tensor,
         generator: torch.Generator | None = None,
         *,
         noise: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """As the base world in the corridor; from a pad, to the origin whatever the action."""
-        moved = super().step(positions, actions, configs, generator, noise=noise)
+        moved = super().step(positions, actions, configurations, generator, noise=noise)
         on_pad = (positions[:, 1].abs() > PAD_EDGE).unsqueeze(-1)
         return torch.where(on_pad, torch.zeros_like(moved), moved)

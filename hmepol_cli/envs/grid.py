@@ -11,9 +11,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
-from hmepol_cli.envs.base import MAX_ACTION, Box, NavigationWorld
+from hmepol_cli.envs.base import MAX_ACTION, Box, NavigationWorld, lattice
 
 ARENA = Box(-1.0, -1.0, 1.0, 1.0)
 START = Box(-1.0, 0.5, -0.5, 1.0)  # north-west corner (REFERENCE_WORLDS.md)
@@ -120,8 +121,8 @@ class GridWorld(NavigationWorld):
         self.layouts = layouts
         self.slopes = slopes
         self.walls = tuple(walls_from_ascii(rows) for rows in layouts)
-        self.config_probs = tuple(probs)
-        self.config_names = tuple(names)
+        self.configuration_probs = tuple(probs)
+        self.configuration_names = tuple(names)
         super().__init__()
 
     def _build_tensors(self) -> None:
@@ -143,24 +144,56 @@ class GridWorld(NavigationWorld):
             [(r.x0, r.y0, r.x1, r.y1) for r in regions], device=self.device, dtype=self.dtype
         )
 
-    def slope_magnitude(self, configs: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    def describe(self, config: int) -> str:
+        slope = self.slopes[config]
+        if slope.mean <= 0:
+            return "no slope"
+        text = f"slope {compass(slope.direction)} ~ N({slope.mean:.3g}, {SLOPE_STD:g})"
+        if slope.region == NORTHERN_HALF:
+            text += ", north half"
+        return text
+
+    def force_region(self, config: int) -> Box | None:
+        slope = self.slopes[config]
+        return (slope.region or self.arena) if slope.mean > 0 else None
+
+    def arrow_candidates(self, config: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], float]:
+        """Arrows every other block, on block corners or on block centres (one-block corridors
+        get arrows too)."""
+        slope, a = self.slopes[config], self.arena
+        if slope.mean <= 0:
+            return [], 0.0
+        r, n = slope.region or a, 5  # 0.4 apart
+        block = (a.x1 - a.x0) / 10
+        candidates = []
+        for shift in (0.0, block / 2):
+            points = lattice(a.x0, a.y0, a.x1, a.y1, n) - shift
+            inside = (points[:, 0] >= max(r.x0, a.x0)) & (points[:, 0] <= min(r.x1, a.x1))
+            inside &= (points[:, 1] >= max(r.y0, a.y0)) & (points[:, 1] <= min(r.y1, a.y1))
+            points = points[inside]
+            candidates.append(
+                (points, np.tile(np.asarray(slope.direction, float), (len(points), 1)))
+            )
+        return candidates, 0.4 * (a.x1 - a.x0) / n  # 0.8 block: fits a one-block corridor
+
+    def slope_magnitude(self, configurations: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """N(mean, 0.01) truncated to [0, high] of each agent's configuration, by inverting the
-        CDF at a uniform draw. configs (N,), noise (N,) in [0, 1) -> (N,) float64"""
-        lo, hi = self._slope_cdf_lo[configs], self._slope_cdf_hi[configs]
+        CDF at a uniform draw. configurations (N,), noise (N,) in [0, 1) -> (N,) float64"""
+        lo, hi = self._slope_cdf_lo[configurations], self._slope_cdf_hi[configurations]
         z = torch.special.ndtri(lo + noise.double() * (hi - lo))
-        magnitude = self._slope_mean[configs] + SLOPE_STD * z
-        return magnitude.clamp(torch.zeros_like(magnitude), self._slope_high[configs])
+        magnitude = self._slope_mean[configurations] + SLOPE_STD * z
+        return magnitude.clamp(torch.zeros_like(magnitude), self._slope_high[configurations])
 
     def force(
-        self, positions: torch.Tensor, configs: torch.Tensor, noise: torch.Tensor
+        self, positions: torch.Tensor, configurations: torch.Tensor, noise: torch.Tensor
     ) -> torch.Tensor:
-        magnitude = self.slope_magnitude(configs, noise[:, 0])
-        region = self._slope_region[configs]
+        magnitude = self.slope_magnitude(configurations, noise[:, 0])
+        region = self._slope_region[configurations]
         x, y = positions[:, 0], positions[:, 1]
         inside = (x >= region[:, 0]) & (x <= region[:, 2]) & (y >= region[:, 1])
-        inside &= (y <= region[:, 3]) & self._slope_on[configs]
+        inside &= (y <= region[:, 3]) & self._slope_on[configurations]
         magnitude = torch.where(inside, magnitude, torch.zeros_like(magnitude))
-        return (magnitude[:, None] * self._slope_dir[configs]).to(positions.dtype)
+        return (magnitude[:, None] * self._slope_dir[configurations]).to(positions.dtype)
 
 
 def compass(direction: tuple[float, float]) -> str:

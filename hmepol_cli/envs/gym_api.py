@@ -84,10 +84,10 @@ def _spaces(world: NavigationWorld) -> tuple[gym.spaces.Box, gym.spaces.Box]:
 
 def _check_config(world: NavigationWorld, config: Any) -> None:
     values = np.atleast_1d(np.asarray(config))
-    if values.dtype.kind not in "iu" or values.min() < 0 or values.max() >= world.n_configs:
+    if values.dtype.kind not in "iu" or values.min() < 0 or values.max() >= world.n_configurations:
         raise ValueError(
             f"options['config']={config!r} is not allowed; use a whole number in "
-            f"0..{world.n_configs - 1} ({', '.join(world.config_names)})"
+            f"0..{world.n_configurations - 1} ({', '.join(world.configuration_names)})"
         )
 
 
@@ -127,7 +127,9 @@ class NavigationEnv(gym.Env[np.ndarray, np.ndarray]):
             _check_config(self.world, options["config"])
             config = int(options["config"])
         else:
-            config = int(self.np_random.choice(self.world.n_configs, p=self.world.config_probs))
+            config = int(
+                self.np_random.choice(self.world.n_configurations, p=self.world.configuration_probs)
+            )
         self._config = torch.tensor([config])
         self._position = self.world.reset(self._config, self._generator)
         self._t = 0
@@ -218,7 +220,7 @@ class NavigationVectorEnv(VectorEnv):
             if mask is None
             else torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device)
         )
-        configs = self._draw_configs()
+        configurations = self._draw_configs()
         if options.get("config") is not None:
             _check_config(self.world, options["config"])
             forced = torch.as_tensor(
@@ -229,8 +231,8 @@ class NavigationVectorEnv(VectorEnv):
                     f"options['config'] has {forced.numel()} values; give 1 or "
                     f"num_envs={self.num_envs}"
                 )
-            configs = forced.expand(self.num_envs).clone()
-        self._start(mask, configs)
+            configurations = forced.expand(self.num_envs).clone()
+        self._start(mask, configurations)
         return self._observations(), self._info()
 
     def step(
@@ -257,12 +259,12 @@ class NavigationVectorEnv(VectorEnv):
         )
 
     def _draw_configs(self) -> torch.Tensor:
-        return self.world.sample_configs(self.num_envs, self._generator).to(self.device)
+        return self.world.sample_configurations(self.num_envs, self._generator).to(self.device)
 
-    def _start(self, mask: torch.Tensor, configs: torch.Tensor) -> None:
+    def _start(self, mask: torch.Tensor, configurations: torch.Tensor) -> None:
         """New episodes where ``mask`` (N,) is True: configuration, start position, t = 0."""
-        starts = self.world.reset(configs, self._generator)
-        self._configs = torch.where(mask, configs, self._configs)
+        starts = self.world.reset(configurations, self._generator)
+        self._configs = torch.where(mask, configurations, self._configs)
         self._positions = torch.where(mask[:, None], starts, self._positions)
         self._t = torch.where(mask, torch.zeros_like(self._t), self._t)
         self._autoreset = self._autoreset & ~mask

@@ -23,7 +23,7 @@ Config 0 is the adversarial one: its slope pushes agents into the start room's o
 reference draws its magnitudes as fractions of the action bound 0.2: mean 0.2 / 2.6 (the thesis
 rounds it to 0.077) up to 0.2 / 1.3, and mean 0.2 / 3.2 = 0.0625 up to 0.2 / 1.6.
 
-Parts of the start area lie in a wall in configs 3, 4, 5 and 9; agents start uniformly in its
+Parts of the start area lie in a wall in configurations 3, 4, 5 and 9; agents start uniformly in its
 free part (the reference would start some inside the wall).
 """
 

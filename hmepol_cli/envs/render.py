@@ -11,14 +11,11 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from hmepol_cli.envs.base import NavigationWorld
-from hmepol_cli.envs.corridor import CorridorWorld
-from hmepol_cli.envs.grid import SLOPE_STD, GridWorld, compass
 
 WALL_COLOUR = "0.55"
 START_COLOUR = "#f2c500"  # the thesis highlights the start area in yellow
@@ -42,8 +39,8 @@ def draw_world(
     is hidden where the agent can never be.
     """
     a = world.arena
-    if force and isinstance(world, GridWorld):
-        _draw_slope_region(ax, world, config, zorder - 0.5)
+    if force:
+        _draw_force_region(ax, world, config, zorder - 0.5)
     for b in world.walls[config]:
         ax.add_patch(
             Rectangle(
@@ -104,27 +101,9 @@ def draw_world(
     ax.set_aspect("equal")
 
 
-def describe_config(world: NavigationWorld, config: int) -> str:
-    """One line on the force of a configuration, e.g. 'slope south ~ N(0.1, 0.01), north half'."""
-    if isinstance(world, CorridorWorld):
-        return f"wind {world.wind:g} in the corridor only" if world.wind > 0 else "no wind"
-    if isinstance(world, GridWorld):
-        slope = world.slopes[config]
-        if slope.mean <= 0:
-            return "no slope"
-        text = f"slope {compass(slope.direction)} ~ N({slope.mean:.3g}, {SLOPE_STD:g})"
-        r, a = slope.region, world.arena
-        if r is not None and r.y0 > a.y0 and r.y1 >= a.y1:
-            text += ", north half"
-        elif r is not None and r.y1 < a.y1 and r.y0 <= a.y0:
-            text += ", south half"
-        return text
-    return ""
-
-
 def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 3.4) -> Path:
     """Save one PNG with a panel per configuration, titled with its name and probability."""
-    n = world.n_configs
+    n = world.n_configurations
     cols = min(n, 5)
     rows = math.ceil(n / cols)
     fig = Figure(figsize=(panel_size * cols, (panel_size + 0.35) * rows + 0.5))
@@ -135,8 +114,8 @@ def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 
             continue
         draw_world(ax, world, c)
         ax.set_title(
-            f"{c}: {world.config_names[c]} (p = {world.config_probs[c]:.2g})\n"
-            f"{describe_config(world, c)}",
+            f"{c}: {world.configuration_names[c]} (p = {world.configuration_probs[c]:.2g})\n"
+            f"{world.describe(c)}",
             fontsize=9.5,
         )
         ax.tick_params(labelsize=7)
@@ -156,58 +135,18 @@ def show_world(world: NavigationWorld, path: str | Path, *, panel_size: float = 
 def force_arrows(world: NavigationWorld, config: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Where to draw force arrows: centres (M, 2), unit directions (M, 2), and arrow length.
 
-    A lattice over the region the force acts on, keeping the arrows that touch no wall. Gridworlds
-    try the lattice on block corners and the one on block centres and keep the fuller one, so
-    one-block corridors get arrows too.
+    The world proposes lattices of arrows over the region its force acts on
+    (``arrow_candidates``); this keeps the arrows that touch no wall, from the fullest lattice.
     """
-    a = world.arena
-    empty = np.zeros((0, 2)), np.zeros((0, 2)), 0.0
-    if isinstance(world, CorridorWorld):
-        if world.wind == 0:
-            return empty
-        n = 16  # 0.75 apart: an arrow in every stub, four across the ring
-        lattices = [_lattice(a.x0, a.y0, a.x1, a.y1, n)]
-        points = torch.tensor(lattices[0], dtype=world.dtype, device=world.device)
-        configs = torch.full((len(points),), config, dtype=torch.long, device=world.device)
-        directions = [world.wind_direction(points, configs).cpu().double().numpy()]
-        length = 0.55 * (a.x1 - a.x0) / n
-    elif isinstance(world, GridWorld) and world.slopes[config].mean > 0:
-        slope = world.slopes[config]
-        r = slope.region or a
-        n = 5  # 0.4 apart, every other block
-        block = (a.x1 - a.x0) / 10
-        lattices = []
-        for shift in (0.0, block / 2):
-            lattice = _lattice(a.x0, a.y0, a.x1, a.y1, n) - shift
-            inside = (
-                (lattice[:, 0] >= max(r.x0, a.x0))
-                & (lattice[:, 0] <= min(r.x1, a.x1))
-                & (lattice[:, 1] >= max(r.y0, a.y0))
-                & (lattice[:, 1] <= min(r.y1, a.y1))
-            )
-            lattices.append(lattice[inside])
-        directions = [
-            np.tile(np.asarray(slope.direction, dtype=float), (len(p), 1)) for p in lattices
-        ]
-        length = 0.4 * (a.x1 - a.x0) / n  # 0.8 block: fits, with margins, a 1-block corridor
-    else:
-        return empty
-    best = empty
-    for lattice, direction in zip(lattices, directions, strict=True):
+    candidates, length = world.arrow_candidates(config)
+    best = np.zeros((0, 2)), np.zeros((0, 2)), 0.0
+    for lattice, direction in candidates:
         keep = np.abs(direction).sum(axis=1) > 0
         for offset in (-length / 2, 0.0, length / 2):
             keep &= _free(world, config, lattice + offset * direction, margin=0.1 * length)
         if keep.sum() > len(best[0]):
             best = lattice[keep], direction[keep], length
     return best
-
-
-def _lattice(x0: float, y0: float, x1: float, y1: float, n: int) -> np.ndarray:
-    """Centres of an n x n grid of cells over the rectangle, (n * n, 2)."""
-    xs = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
-    ys = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
-    gx, gy = np.meshgrid(xs, ys)
-    return np.stack([gx.ravel(), gy.ravel()], axis=1)
 
 
 def _free(world: NavigationWorld, config: int, points: np.ndarray, margin: float) -> np.ndarray:
@@ -222,13 +161,13 @@ def _free(world: NavigationWorld, config: int, points: np.ndarray, margin: float
     return free
 
 
-def _draw_slope_region(ax: Axes, world: GridWorld, config: int, zorder: float) -> None:
-    slope = world.slopes[config]
-    if slope.mean <= 0:
+def _draw_force_region(ax: Axes, world: NavigationWorld, config: int, zorder: float) -> None:
+    region = world.force_region(config)
+    if region is None:
         return
     a = world.arena
-    r = slope.region or a
-    x0, y0, x1, y1 = max(r.x0, a.x0), max(r.y0, a.y0), min(r.x1, a.x1), min(r.y1, a.y1)
+    x0, y0 = max(region.x0, a.x0), max(region.y0, a.y0)
+    x1, y1 = min(region.x1, a.x1), min(region.y1, a.y1)
     ax.add_patch(
         Rectangle(
             (x0, y0),

@@ -155,13 +155,13 @@ def initial_policy(
 
 def _configurations(cfg: DictConfig, world: NavigationWorld) -> list[int]:
     if cfg.config is None:
-        return list(range(world.n_configs))
+        return list(range(world.n_configurations))
     values = list(cfg.config) if OmegaConf.is_list(cfg.config) else [cfg.config]
     for c in values:
-        if isinstance(c, bool) or not isinstance(c, int) or not 0 <= c < world.n_configs:
+        if isinstance(c, bool) or not isinstance(c, int) or not 0 <= c < world.n_configurations:
             raise ConfigError(
                 f"config={c!r} is not a configuration of {world.name}; "
-                f"choose 0..{world.n_configs - 1}, a list of them, or null (all)"
+                f"choose 0..{world.n_configurations - 1}, a list of them, or null (all)"
             )
     return [int(c) for c in values]
 
@@ -263,8 +263,8 @@ def finetune(cfg: DictConfig) -> Path:
             init=plan.init_label,
             seed=int(cfg.seed),
             epochs=int(cfg.epochs),
-            config_names=list(plan.world.config_names),
-            config_probs=list(plan.world.config_probs),
+            config_names=list(plan.world.configuration_names),
+            config_probs=list(plan.world.configuration_probs),
         )
         write_json(out_dir / TARGETS_JSON, _targets_info(plan))
         rows = _run(cfg, plan, device, out_dir)
@@ -334,7 +334,7 @@ def _row(
         "init": plan.init_label,
         "algo_init": plan.algo_init,
         "seed": seed,
-        "config_name": world.config_names[config],
+        "config_name": world.configuration_names[config],
         "episode_length": float(rollout.lengths.float().mean()),
         "accepted": step.accepted,
     }
@@ -348,7 +348,7 @@ def _targets_info(plan: Plan) -> dict:
         "targets": [
             {
                 "config": c,
-                "config_name": plan.world.config_names[c],
+                "config_name": plan.world.configuration_names[c],
                 "target": k,
                 "box": [t.target.x0, t.target.y0, t.target.x1, t.target.y1],
             }

@@ -66,6 +66,11 @@ class Policy(nn.Module):
             mean_layer.bias.zero_()
 
     # -- to implement ----------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int, **start) -> Policy:
+        """The policy of a ``policy`` config group entry; ``start`` holds the initialisation."""
+        raise NotImplementedError
+
     def step(
         self, states: torch.Tensor, history: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:

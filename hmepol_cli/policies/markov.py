@@ -15,6 +15,10 @@ class MarkovPolicy(Policy):
         self.mean_net = mlp([state_dim, *hidden, action_dim])
         self.initialise(self.mean_net[-1])
 
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int, **start) -> MarkovPolicy:
+        return cls(state_dim, action_dim, hidden=list(cfg.hidden), **start)
+
     def step(
         self, states: torch.Tensor, history: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -39,6 +39,19 @@ class RecursivePolicy(Policy):
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
 
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int, **start) -> RecursivePolicy:
+        return cls(
+            state_dim,
+            action_dim,
+            hidden=list(cfg.hidden),
+            encoder_hidden=list(cfg.encoder_hidden),
+            history_size=cfg.history_size,
+            # Runs saved before the option existed used the thesis' ReLU encoder output.
+            encoder_activation=getattr(cfg, "encoder_activation", "relu"),
+            **start,
+        )
+
     def step(
         self, states: torch.Tensor, history: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,6 +76,17 @@ class TwoHeadPolicy(Policy):
         self.history_head = mlp([hidden[-1], history_size], out_activation=encoder_activation)
         self.initialise(self.mean_head[-1])
 
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int, **start) -> TwoHeadPolicy:
+        return cls(
+            state_dim,
+            action_dim,
+            hidden=list(cfg.hidden),
+            history_size=cfg.history_size,
+            encoder_activation=getattr(cfg, "encoder_activation", "relu"),
+            **start,
+        )
+
     def step(
         self, states: torch.Tensor, history: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -85,6 +109,10 @@ class GRUPolicy(Policy):
         self.hidden_gates = nn.Linear(history_size, 3 * history_size)
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
+
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int, **start) -> GRUPolicy:
+        return cls(state_dim, action_dim, list(cfg.hidden), cfg.history_size, **start)
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor
@@ -114,6 +142,10 @@ class LSTMPolicy(Policy):
         self.hidden_gates = nn.Linear(history_size, 4 * history_size)
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
+
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int, **start) -> LSTMPolicy:
+        return cls(state_dim, action_dim, list(cfg.hidden), cfg.history_size, **start)
 
     def step(
         self, states: torch.Tensor, history: torch.Tensor

@@ -19,6 +19,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
+from hmepol_cli.algorithms import SCRATCH
 from hmepol_cli.report.plots import (
     BOUND_COLOUR,
     LINESTYLES,
@@ -28,7 +29,7 @@ from hmepol_cli.report.plots import (
     save,
     trajectory_grid,
 )
-from hmepol_cli.report.runs import Group, Run, algo_label, format_wind
+from hmepol_cli.report.runs import ALGO_ORDER, Group, Run, algo_label, format_wind
 from hmepol_cli.report.stats import curve_ci, mean_ci
 
 MAX_CONFIG_BARS = 5  # more configurations than this (multigrid): bars for average and config 0
@@ -156,7 +157,7 @@ def seeds_text(groups: list[Group]) -> str:
 
 def average_bound(run: Run) -> float:
     """Highest average entropy: sum_c p_M(c) log(free area of c), the uniform visitation."""
-    logs, probs = np.array(run.log_free_area), np.array(run.config_probs)
+    logs, probs = np.array(run.log_free_area), np.array(run.configuration_probs)
     return float((logs * probs).sum() / probs.sum()) if np.isfinite(logs).all() else math.nan
 
 
@@ -293,10 +294,10 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
     styles = series_styles(groups)
     winds = winds_of(groups)
     several = len(winds) > 1
-    names = groups[0].config_names
-    n_configs = len(names)
-    cols = min(n_configs, 5)
-    per_wind = math.ceil(n_configs / cols)
+    names = groups[0].configuration_names
+    n_configurations = len(names)
+    cols = min(n_configurations, 5)
+    per_wind = math.ceil(n_configurations / cols)
     fig = new_figure(4.0 * cols, 3.0 * per_wind * len(winds) + 0.6)
     # Each configuration on its own scale: their entropies differ by more than a curve's rise.
     axes = fig.subplots(per_wind * len(winds), cols, squeeze=False)
@@ -304,7 +305,7 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
         members = at_wind(groups, wind)
         for c in range(per_wind * cols):
             ax = axes[w * per_wind + c // cols, c % cols]
-            if c >= n_configs:
+            if c >= n_configurations:
                 ax.set_axis_off()
                 continue
             for group in members:
@@ -344,14 +345,14 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     styles = series_styles(groups)
     winds = winds_of(groups)
     several = len(winds) > 1
-    names = groups[0].config_names
-    configs: list[int | None] = [None] + list(
+    names = groups[0].configuration_names
+    configurations: list[int | None] = [None] + list(
         range(len(names) if len(names) <= MAX_CONFIG_BARS else 1)
     )
     cols = min(len(winds), 2)
     rows = math.ceil(len(winds) / cols)
     fig = new_figure(
-        max(6.0, 1.0 * len(configs) * len(styles) ** 0.5 + 1.5) * cols, 3.6 * rows + 0.7
+        max(6.0, 1.0 * len(configurations) * len(styles) ** 0.5 + 1.5) * cols, 3.6 * rows + 0.7
     )
     axes = fig.subplots(rows, cols, squeeze=False, sharey=True)
     width = 0.8 / len(styles)
@@ -365,7 +366,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
             if group is None:
                 continue
             style = styles[label]
-            for x, config in enumerate(configs):
+            for x, config in enumerate(configurations):
                 finals = np.array(list(group.finals(config).values()))
                 ci = mean_ci(finals)
                 pos = x - 0.4 + width * (s + 0.5)
@@ -393,7 +394,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                     label="one seed" if (x == 0 and s == 0) else None,
                 )
         run = members[0].first
-        for x, config in enumerate(configs):
+        for x, config in enumerate(configurations):
             bound = config_bound(run, config)
             if np.isfinite(bound):
                 ax.hlines(
@@ -409,10 +410,10 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
         shown_values += (
             [p.get_height() for p in ax.patches]
             + [float(v) for c in ax.collections for v in np.asarray(c.get_offsets())[:, 1]]
-            + [config_bound(run, c) for c in configs]
+            + [config_bound(run, c) for c in configurations]
         )
-        ticks = ["average"] + [f"config {c}\n{names[c]}" for c in configs[1:]]
-        ax.set_xticks(range(len(configs)), ticks)
+        ticks = ["average"] + [f"config {c}\n{names[c]}" for c in configurations[1:]]
+        ax.set_xticks(range(len(configurations)), ticks)
         ax.set_ylabel("final entropy (nats)")
         ax.set_title(f"wind {format_wind(wind)}" if several else "")
         ax.grid(axis="y", alpha=0.3)
@@ -428,7 +429,9 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_final_entropy_bars.png")
     shown = "the average over configurations and " + (
-        "each configuration" if len(configs) == len(names) + 1 else "configuration 0 (the hardest)"
+        "each configuration"
+        if len(configurations) == len(names) + 1
+        else "configuration 0 (the hardest)"
     )
     caption = (
         f"Final entropy (nats; per seed the mean over the last 10% of epochs) of {compared}: "
@@ -513,7 +516,7 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
         if not members:
             continue
         world = load_world(env, wind)
-        names = members[0].config_names
+        names = members[0].configuration_names
         chosen = [(g, g.representative()) for g in members]
         rows = [
             (f"{g.label}: seed {run.seed} ({_median_of(len(g.runs))})", run.positions)
@@ -559,7 +562,7 @@ def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRec
         first = group.representative()
         runs = [first] + [r for r in runs if r is not first][: MAX_TRAJECTORY_SEEDS - 1]
         world = load_world(env, group.wind)
-        names = group.config_names
+        names = group.configuration_names
         cols = min(len(names), 5)
         blocks = len(runs) * math.ceil(len(names) / cols)
         fig = new_figure(2.5 * cols + 0.2, 2.75 * blocks + 0.5)
@@ -617,17 +620,17 @@ def finetune_returns(
     # Worlds without a wind (slope, multigrid) record none: one group for them.
     winds = sorted(frame["wind"].dropna().unique()) + ([None] if frame["wind"].isna().any() else [])
     several = len(winds) > 1
-    order = ["mepol", "alphamepol", "hmepol", "scratch"]
+    order = [*ALGO_ORDER, SCRATCH.name]
     for wind in winds:
         part = frame[frame["wind"].isna()] if wind is None else frame[frame["wind"] == wind]
         curves = finetune_curves(part)
-        configs = sorted({c for _, c in curves})
+        configurations = sorted({c for _, c in curves})
         inits = sorted(
             {i for i, _ in curves}, key=lambda i: (order.index(i) if i in order else 9, i)
         )
-        fig = new_figure(4.6 * len(configs), 3.6)
-        axes = fig.subplots(1, len(configs), squeeze=False, sharey=True)[0]
-        for ax, config in zip(axes, configs, strict=True):
+        fig = new_figure(4.6 * len(configurations), 3.6)
+        axes = fig.subplots(1, len(configurations), squeeze=False, sharey=True)[0]
+        for ax, config in zip(axes, configurations, strict=True):
             for init in inits:
                 if (init, config) not in curves:
                     continue
@@ -688,6 +691,6 @@ def make_figures(
             records += trajectories(env, members, out_dir)
         frame = finetune_frame([r for r in finetune_runs if r.env == env])
         if not frame.empty:
-            names = next((r.config_names for r in finetune_runs if r.env == env), [])
+            names = next((r.configuration_names for r in finetune_runs if r.env == env), [])
             records += finetune_returns(env, frame, names, out_dir)
     return records

@@ -15,15 +15,9 @@ from matplotlib import colormaps
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
+from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
 from hmepol_cli.envs.render import draw_world
 
-# One colour per algorithm in every figure of the report.
-ALGO_COLOURS = {
-    "mepol": "#1f77b4",  # blue
-    "alphamepol": "#d62728",  # red
-    "hmepol": "#2ca02c",  # green
-    "scratch": "#7f7f7f",  # grey (fine-tuning from scratch)
-}
 OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#ff7f0e")
 LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1)), (0, (5, 2, 1, 2)))
 BOUND_COLOUR = "0.25"  # the log(free area) line
@@ -32,8 +26,10 @@ DPI = 110
 
 
 def algo_colour(algo: str) -> str:
-    if algo in ALGO_COLOURS:
-        return ALGO_COLOURS[algo]
+    """One colour per algorithm in every figure (algorithms.py), others by their name's hash."""
+    known = {**ALGORITHMS, SCRATCH.name: SCRATCH}
+    if algo in known:
+        return known[algo].colour
     return OTHER_COLOURS[sum(map(ord, algo)) % len(OTHER_COLOURS)]
 
 
@@ -122,7 +118,7 @@ def heatmap_grid(
     fig: Figure,
     world,
     rows: Sequence[tuple[str, dict[int, np.ndarray]]],
-    config_names: Sequence[str],
+    configuration_names: Sequence[str],
     max_cols: int = 5,
 ) -> None:
     """Heatmaps of log visitation probability: one block of panels per row, one panel per config.
@@ -130,9 +126,9 @@ def heatmap_grid(
     ``rows`` holds (label, {config: positions (n, T+1, 2)}). All panels share one colour scale,
     shown by one colour bar at the right.
     """
-    n_configs = len(config_names)
-    cols = min(n_configs, max_cols)
-    rows_per_block = math.ceil(n_configs / cols)
+    n_configurations = len(configuration_names)
+    cols = min(n_configurations, max_cols)
+    rows_per_block = math.ceil(n_configurations / cols)
     some = next((p for _, by_c in rows for p in by_c.values()), None)
     extent = world_extent(world, some)
     bins = default_bins(extent)
@@ -149,10 +145,10 @@ def heatmap_grid(
     for axes, block in zip(grids, maps, strict=True):
         for c in range(rows_per_block * cols):
             ax = axes[c // cols, c % cols]
-            if c >= n_configs:
+            if c >= n_configurations:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"config {c}: {config_names[c]}")
+            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}")
             ax.set_facecolor("white")
             if c in block:
                 image = ax.imshow(
@@ -199,25 +195,25 @@ def trajectory_grid(
     fig: Figure,
     world,
     rows: Sequence[tuple[str, dict[int, np.ndarray]]],
-    config_names: Sequence[str],
+    configuration_names: Sequence[str],
     n_trajectories: int = 10,
     every: int = 10,
     max_cols: int = 5,
 ) -> None:
     """Trajectory panels: one block per row (a seed, a run), one panel per configuration."""
-    n_configs = len(config_names)
-    cols = min(n_configs, max_cols)
-    rows_per_block = math.ceil(n_configs / cols)
+    n_configurations = len(configuration_names)
+    cols = min(n_configurations, max_cols)
+    rows_per_block = math.ceil(n_configurations / cols)
     some = next((p for _, by_c in rows for p in by_c.values()), None)
     extent = world_extent(world, some)
     grids = _blocks(fig, len(rows), rows_per_block, cols, [label for label, _ in rows])
     for axes, (_, by_config) in zip(grids, rows, strict=True):
         for c in range(rows_per_block * cols):
             ax = axes[c // cols, c % cols]
-            if c >= n_configs:
+            if c >= n_configurations:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"config {c}: {config_names[c]}")
+            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}")
             draw_walls(ax, world, c)
             if c in by_config:
                 draw_trajectories(ax, by_config[c], n_trajectories, every)
@@ -237,11 +233,12 @@ def save_run_plots(
     """
     out_dir = Path(out_dir)
     names = list(
-        getattr(world, "config_names", None) or [f"config {c}" for c in sorted(positions_by_config)]
+        getattr(world, "configuration_names", None)
+        or [f"config {c}" for c in sorted(positions_by_config)]
     )
-    n_configs = len(names)
-    cols = min(n_configs, 5)
-    rows = math.ceil(n_configs / cols)
+    n_configurations = len(names)
+    cols = min(n_configurations, 5)
+    rows = math.ceil(n_configurations / cols)
     some = next(iter(positions_by_config.values()))
     n_traj, steps = some.shape[0], some.shape[1] - 1
     world_name = getattr(world, "name", "world")

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
 from hmepol_cli.report.stats import final_value
 from hmepol_cli.rundir import (
     BATCHES_CSV,
@@ -68,7 +69,7 @@ SHORT_NAMES = {
     "algo.alpha": "alpha",
     "algo.objective": "objective",
 }
-ALGO_ORDER = ("mepol", "alphamepol", "hmepol")
+ALGO_ORDER = tuple(ALGORITHMS)
 REQUIRED_EPOCH_COLUMNS = ("epoch", "entropy")
 REQUIRED_FINETUNE_COLUMNS = ("epoch", "target", "config", "return", "algo_init", "seed")
 # The columns the report reads as numbers: a field that is not one makes the run unusable.
@@ -128,7 +129,7 @@ class Run:
         return math.nan
 
     @property
-    def n_configs(self) -> int:
+    def n_configurations(self) -> int:
         names = self.meta.get("config_names")
         if names:
             return len(names)
@@ -137,26 +138,26 @@ class Run:
         return len(self.positions or {})
 
     @property
-    def config_names(self) -> list[str]:
+    def configuration_names(self) -> list[str]:
         names = self.meta.get("config_names") or []
-        return [str(n) for n in names] or [f"config {c}" for c in range(self.n_configs)]
+        return [str(n) for n in names] or [f"config {c}" for c in range(self.n_configurations)]
 
     @property
-    def config_probs(self) -> list[float]:
+    def configuration_probs(self) -> list[float]:
         probs = self.meta.get("config_probs")
-        if probs and len(probs) == self.n_configs:
+        if probs and len(probs) == self.n_configurations:
             return [float(p) for p in probs]
-        return [1.0 / max(self.n_configs, 1)] * self.n_configs
+        return [1.0 / max(self.n_configurations, 1)] * self.n_configurations
 
     @property
     def log_free_area(self) -> list[float]:
         logs = self.meta.get("log_free_area")
-        if logs and len(logs) == self.n_configs:
+        if logs and len(logs) == self.n_configurations:
             return [float(v) for v in logs]
         areas = self.meta.get("free_area")
-        if areas and len(areas) == self.n_configs:
+        if areas and len(areas) == self.n_configurations:
             return [math.log(float(a)) for a in areas]
-        return [math.nan] * self.n_configs
+        return [math.nan] * self.n_configurations
 
     @property
     def is_pretraining(self) -> bool:
@@ -219,12 +220,12 @@ class Group:
         return sorted(r.seed for r in self.runs)
 
     @property
-    def n_configs(self) -> int:
-        return self.first.n_configs
+    def n_configurations(self) -> int:
+        return self.first.n_configurations
 
     @property
-    def config_names(self) -> list[str]:
-        return self.first.config_names
+    def configuration_names(self) -> list[str]:
+        return self.first.configuration_names
 
     def finals(self, config: int | None = None) -> dict[int, float]:
         """Final entropy of every seed, {seed: nats}."""
@@ -403,7 +404,7 @@ def check_entropies(epochs: pd.DataFrame, drawn: set[tuple[float, int]] | None) 
             raise RunError(f"{EPOCHS_CSV} line {epochs.index[i]}: {column}={values[i]} {why}")
 
 
-def _read_positions(path: Path, n_configs: int) -> dict[int, np.ndarray]:
+def _read_positions(path: Path, n_configurations: int) -> dict[int, np.ndarray]:
     if not path.is_file():
         raise RunError("eval/final.npz is missing")
     try:
@@ -417,9 +418,10 @@ def _read_positions(path: Path, n_configs: int) -> dict[int, np.ndarray]:
             raise RunError(
                 f"eval/final.npz positions_c{c} has shape {array.shape}, not (n, T+1, 2)"
             )
-    if n_configs and sorted(positions) != list(range(n_configs)):
+    if n_configurations and sorted(positions) != list(range(n_configurations)):
         raise RunError(
-            f"eval/final.npz holds configurations {sorted(positions)}, expected 0..{n_configs - 1}"
+            f"eval/final.npz holds configurations {sorted(positions)}, "
+            f"expected 0..{n_configurations - 1}"
         )
     return positions
 
@@ -471,7 +473,7 @@ def load_run(path: Path) -> Run:
     epochs = read_table(path / EPOCHS_CSV, REQUIRED_EPOCH_COLUMNS, NUMERIC_EPOCH_COLUMNS)
     check_entropies(epochs, _drawn_configurations(path / BATCHES_CSV))
     run.epochs = epochs.sort_values("epoch")
-    run.positions = _read_positions(path / EVAL_DIR / f"{FINAL_EVAL}.npz", run.n_configs)
+    run.positions = _read_positions(path / EVAL_DIR / f"{FINAL_EVAL}.npz", run.n_configurations)
     return run
 
 
@@ -609,12 +611,8 @@ def label_groups(groups: list[Group]) -> None:
 
 
 def algo_label(algo: str) -> str:
-    return {
-        "mepol": "Mepol",
-        "alphamepol": "α-Mepol",
-        "hmepol": "HMepol",
-        "scratch": "from scratch",
-    }.get(algo, algo)
+    known = {**ALGORITHMS, SCRATCH.name: SCRATCH}
+    return known[algo].label if algo in known else algo
 
 
 def format_wind(wind: float) -> str:

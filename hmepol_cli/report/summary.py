@@ -39,7 +39,7 @@ class ReportCounts:
 
 
 def _config_rows(group: Group) -> list[tuple[int | None, str]]:
-    return [(None, "average")] + [(c, f"{c}: {n}") for c, n in enumerate(group.config_names)]
+    return [(None, "average")] + [(c, f"{c}: {n}") for c, n in enumerate(group.configuration_names)]
 
 
 def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
