@@ -137,10 +137,20 @@ def _check_known_keys(cfg: DictConfig, schema: DictConfig, prefix: str = "") -> 
             _check_known_keys(node, spec, f"{path}.")
 
 
+def _check_output_dirs(overrides: list[str]) -> None:
+    """An output folder given on the command line must be a folder, if it exists."""
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key in ("hydra.run.dir", "hydra.sweep.dir", "output_dir") and value:
+            if Path(value).exists() and not Path(value).is_dir():
+                raise ConfigError(f"{key}={value!r} is a file, not a folder")
+
+
 def check_train(overrides: list[str]) -> DictConfig:
     """The config of ``hmepol train overrides``, checked, before Hydra writes anything."""
     from hmepol_cli.config import Config
 
+    _check_output_dirs(overrides)
     resume = next((o.partition("=")[2] for o in overrides if o.startswith("resume=")), None)
     if resume not in (None, "", "null"):
         run_config(Path(resume))  # a clear error for a folder that is not a run
@@ -157,6 +167,7 @@ def check_sweep(overrides: list[str]) -> int:
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
+    _check_output_dirs(overrides)
     task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
     try:
         parsed = OverridesParser.create().parse_overrides(task)
@@ -199,6 +210,8 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> Dict
 def _set_threads(cfg: DictConfig) -> None:
     if cfg.threads > 0:
         torch.set_num_threads(int(cfg.threads))
+        return
+    if not HydraConfig.initialized():
         return
     hc = HydraConfig.get()
     n_jobs = OmegaConf.select(hc, "launcher.n_jobs") if hc.mode == RunMode.MULTIRUN else None
@@ -448,9 +461,14 @@ def main(argv: list[str] | None = None) -> None:
             _sweep(rest)
         elif command == "finetune":
             if not _asks_for_help(rest):
+                from hmepol_cli.config import FinetuneConfig
                 from hmepol_cli.finetune import check_finetune
 
-                check_finetune(compose("finetune", [a for a in rest if not a.startswith("-")]))
+                overrides = [a for a in rest if not a.startswith("-")]
+                _check_output_dirs(overrides)
+                cfg = compose("finetune", overrides)
+                _check_known_keys(cfg, OmegaConf.structured(FinetuneConfig))
+                check_finetune(cfg)
             sys.argv = ["hmepol", *rest]
             finetune_app()
         elif command == "report":

@@ -226,6 +226,8 @@ def validate(cfg: DictConfig) -> None:
         )
     if cfg.epochs < 0:
         raise ConfigError(f"epochs={cfg.epochs!r} must be >= 0")
+    if cfg.seeds is not None and len(set(cfg.seeds)) != len(cfg.seeds):
+        raise ConfigError(f"seeds={list(cfg.seeds)} holds a seed twice")
     validate_policy(cfg.policy)
 
 

@@ -139,7 +139,9 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
     A file that is not one (corrupt, truncated, or holding anything but weights) is refused in
     one line that names it."""
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():  # torch's notes on foreign pickles: the refusal says it
+            warnings.simplefilter("ignore")
+            state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises several unpickling and zip errors
         reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise RunDirError(

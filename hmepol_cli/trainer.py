@@ -77,6 +77,7 @@ class EpochStats:
     floor_share: float = 0.0  # share of particles whose ball volume hit the estimator's floor
     diverged: bool = False  # |h'| or |a| past the alarm bounds
     seconds: dict[str, float] = field(default_factory=dict)
+    broken: list[str] = field(default_factory=list)  # non-finite in the rollout: the member stops
 
 
 @dataclass
@@ -280,7 +281,7 @@ class Trainer:
     def _record(self, s: int, epoch: int, stats: EpochStats) -> str | None:
         """Write member s's epoch, or stop it if a number is not finite. -> a note for the bar"""
         member, alarms = self.members[s], self.cfg.alarms
-        broken = self._non_finite(s, stats)
+        broken = stats.broken or self._non_finite(s, stats)
         if broken:
             member.failure = (
                 f"non-finite {', '.join(broken)} at epoch {epoch}: the run stopped there"
@@ -320,7 +321,10 @@ class Trainer:
         return [name for name, ok in checks.items() if not ok]
 
     def epoch(self, due: list[int] | None = None) -> list[EpochStats]:
-        """One epoch of the members ``due`` (default: all). -> their stats, in that order."""
+        """One epoch of the members ``due`` (default: all). -> their stats, in that order.
+
+        A member whose rollout holds a non-finite position, action or history stops here:
+        its stats name what broke (``broken``) and it takes no update."""
         a, e = self.cfg.algo, self.cfg.estimator
         due = list(range(self.size)) if due is None else due
         members = torch.tensor(due, device=self.device)
@@ -339,10 +343,35 @@ class Trainer:
             generators,
             graphs=self.graphs,
         )
+        configs_host = configurations[:, :: a.batch_size].cpu().numpy()
+        broken = _broken_rows(rollout)
+        if broken:
+            healthy = [i for i in range(len(due)) if i not in broken]
+            rows = torch.tensor(healthy, dtype=torch.long, device=self.device)
+            rollout = _rollout_rows(rollout, rows)
+            members = members.index_select(0, rows)
         t1 = time.perf_counter()
+        stats = self._epoch_of(rollout, members, t0, t1) if len(members) else []
+        by_row = iter(stats)
+        out = []
+        for i in range(len(due)):
+            if i in broken:
+                out.append(_broken_stats(broken[i], configs_host[i]))
+            else:
+                stat = next(by_row)
+                stat.batch_configurations = configs_host[i]
+                out.append(stat)
+        return out
+
+    def _epoch_of(
+        self, rollout: Rollout, members: torch.Tensor, t0: float, t1: float
+    ) -> list[EpochStats]:
+        """Neighbours, entropies and the update of the members of a rollout."""
+        a, e = self.cfg.algo, self.cfg.estimator
+        n = len(members)
         particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), a.batch_size)
         neighbours = estimators.nearest_neighbours(particles, e.k, e.neighbours)  # (S' M, P, k)
-        entropies = estimators.knn_entropy(neighbours, e.eps).view(len(due), -1)  # (S', M)
+        entropies = estimators.knn_entropy(neighbours, e.eps).view(n, -1)  # (S', M)
         t2 = time.perf_counter()
         updates = self.trust_region_update(members, rollout, neighbours)
         t3 = time.perf_counter()
@@ -351,7 +380,7 @@ class Trainer:
         alarms = self.cfg.alarms
         history_max = _amax_per_member(rollout.histories)
         action_max = _amax_per_member(rollout.actions)
-        floor = estimators.floor_share(neighbours, e.eps, per_batch=True).view(len(due), -1)
+        floor = estimators.floor_share(neighbours, e.eps, per_batch=True).view(n, -1)
         objectives = objective(entropies, a.objective, a.alpha)
         host = torch.stack(
             [
@@ -362,14 +391,13 @@ class Trainer:
             ]
         ).cpu()
         entropies_host = entropies.double().cpu().numpy()
-        configs_host = configurations[:, :: a.batch_size].cpu().numpy()
         stats = []
-        for i in range(len(due)):
+        for i in range(n):
             h_max, a_max, floor_i, objective_i = host[:, i].tolist()
             stats.append(
                 EpochStats(
                     entropies=entropies_host[i],
-                    batch_configurations=configs_host[i],
+                    batch_configurations=np.zeros(0),
                     objective=objective_i,
                     update=updates[i],
                     history_max=h_max,
@@ -563,6 +591,49 @@ def _epoch_rows(epoch: int, stats: EpochStats, n_configurations: int) -> tuple[d
         }
     )
     return row, batches
+
+
+def _broken_rows(rollout: Rollout) -> dict[int, list[str]]:
+    """Rows (members) of a rollout holding non-finite positions, actions or histories, with
+    their names. One transfer."""
+    checks = {"positions": rollout.states, "actions": rollout.actions, "history": rollout.histories}
+    finite = torch.stack(
+        [
+            torch.isfinite(v).flatten(1).all(dim=1)
+            if v.numel()
+            else torch.ones(v.shape[0], dtype=torch.bool, device=v.device)
+            for v in checks.values()
+        ]
+    ).cpu()  # (3, S')
+    names = list(checks)
+    return {
+        i: [names[j] for j in range(len(names)) if not finite[j, i]]
+        for i in range(finite.shape[1])
+        if not finite[:, i].all()
+    }
+
+
+def _rollout_rows(rollout: Rollout, rows: torch.Tensor) -> Rollout:
+    """The members of a rollout in ``rows``."""
+    return Rollout(
+        **{
+            k: v.index_select(0, rows) if isinstance(v, torch.Tensor) else v
+            for k, v in vars(rollout).items()
+        }
+    )
+
+
+def _broken_stats(names: list[str], configurations: np.ndarray) -> EpochStats:
+    nan = np.full(len(configurations), math.nan)
+    return EpochStats(
+        entropies=nan,
+        batch_configurations=configurations,
+        objective=math.nan,
+        update=UpdateResult(nan, math.nan, 0, 0, math.nan),
+        history_max=math.nan,
+        action_max=math.nan,
+        broken=names,
+    )
 
 
 def _amax_per_member(values: torch.Tensor) -> torch.Tensor:

@@ -1,5 +1,7 @@
 """Sweeps on the joblib launcher: a run per job, finished jobs skipped, failures isolated."""
 
+# Each test runs the real command (a subprocess) over several jobs.
+
 from __future__ import annotations
 
 import json
@@ -9,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import pytest
 from omegaconf import OmegaConf
 
 from tests.test_cli import TINY
@@ -39,6 +42,7 @@ def runs(root: Path) -> dict[Path, OmegaConf]:
     }
 
 
+@pytest.mark.slow
 def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again(tmp_path):
     proc = sweep(tmp_path, "env=corridor", "wind=0.05,0.4", "seed=0,1")
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -53,6 +57,7 @@ def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again
     assert again.stdout.count("already finished") == 4
 
 
+@pytest.mark.slow
 def test_a_sweep_with_a_bad_value_is_refused_before_anything_is_written(tmp_path):
     proc = sweep(tmp_path, "estimator.k=0,3")
     assert proc.returncode == 2 and "estimator.k=0" in proc.stderr
@@ -60,6 +65,7 @@ def test_a_sweep_with_a_bad_value_is_refused_before_anything_is_written(tmp_path
     assert not (tmp_path / "sweep").exists()
 
 
+@pytest.mark.slow
 def test_a_failed_job_does_not_stop_the_others_and_the_sweep_says_so(tmp_path):
     """One job's directory is held by another live process: that job fails, the other runs,
     the sweep exits 1 with a table of the failed job, and a re-run retries it."""
@@ -111,6 +117,7 @@ def test_group_by_seed_makes_one_job_per_population():
     ]
 
 
+@pytest.mark.slow
 def test_a_population_sweep_leaves_the_runs_a_sweep_over_seeds_would(tmp_path):
     """Three seeds through the population launcher: the three run directories an ordinary sweep
     writes, with its curves, read by the report like any others, and skipped when run again."""

@@ -114,4 +114,13 @@ def make_tasks(
         boxes = [draw_target(world, config, k, seed, side) for k in range(targets)]
     else:
         boxes = [box_around((float(x), float(y)), side) for x, y in goal]
+        free = world.free_mask(config, MASK_RESOLUTION)
+        a = world.arena
+        for (x, y), box in zip(goal, boxes, strict=True):
+            inside = a.x0 <= box.x0 and box.x1 <= a.x1 and a.y0 <= box.y0 and box.y1 <= a.y1
+            if not inside or not _box_is_free(free, a, box):
+                raise TargetError(
+                    f"goal=[{x:g}, {y:g}]: a target of side {side:g} there is not in the free "
+                    f"space of {world.name} configuration {config}; choose a centre in free space"
+                )
     return [GoalTask(box, config, horizon) for box in boxes]

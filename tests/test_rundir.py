@@ -1,0 +1,175 @@
+"""Run directories: one writer at a time, the config they started with, every epoch exactly
+once, files a cluster's other users can read, and failures recorded rather than hidden."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+import subprocess
+
+import pandas as pd
+import pytest
+import torch
+
+from hmepol_cli.cli import train_runs
+from hmepol_cli.errors import RunDirError, RunFailure
+from hmepol_cli.rundir import (
+    CHECKPOINT,
+    COMMANDS,
+    CONFIG,
+    EPOCHS_CSV,
+    LOCK,
+    RUN_INFO,
+    RunDirectory,
+    atomic_write_text,
+)
+from hmepol_cli.trainer import Trainer
+from tests.test_trainer import compose_cfg
+
+
+# ------------------------------------------------------------------ ownership
+def test_a_second_writer_is_refused_naming_the_holder(tmp_path):
+    cfg = compose_cfg()
+    first = RunDirectory(tmp_path / "run", cfg).open()
+    try:
+        with pytest.raises(RunDirError, match=f"pid {os.getpid()} on {socket.gethostname()}"):
+            RunDirectory(tmp_path / "run", cfg).open()
+    finally:
+        first.close()
+    assert not (tmp_path / "run" / LOCK).exists()
+    RunDirectory(tmp_path / "run", cfg).open().close()  # free again once released
+
+
+def test_the_lock_of_a_process_that_is_gone_is_taken_over_with_a_warning(tmp_path):
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    holder = {"pid": gone.pid, "host": socket.gethostname(), "started": "earlier"}
+    (run_dir / LOCK).write_text(json.dumps(holder))
+    with pytest.warns(UserWarning, match="is gone"):
+        directory = RunDirectory(run_dir, compose_cfg()).open()
+    assert json.loads((run_dir / LOCK).read_text())["pid"] == os.getpid()
+    directory.close()
+
+
+def test_a_lock_held_on_another_host_is_refused(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / LOCK).write_text(json.dumps({"pid": 1, "host": "elsewhere", "started": "x"}))
+    with pytest.raises(RunDirError, match="host elsewhere"):
+        RunDirectory(run_dir, compose_cfg()).open()
+
+
+# ------------------------------------------------------------------ identity and provenance
+def test_continuing_a_run_with_another_config_is_refused_naming_the_keys(tmp_path):
+    RunDirectory(tmp_path / "run", compose_cfg("algo.lr=0.001")).open().close()
+    started = (tmp_path / "run" / CONFIG).read_text()
+    with pytest.raises(RunDirError, match=r"algo\.lr=0\.001 \(now 0\.5\)") as refused:
+        RunDirectory(tmp_path / "run", compose_cfg("algo.lr=0.5")).open()
+    assert "\n" not in str(refused.value)
+    assert (tmp_path / "run" / CONFIG).read_text() == started  # nothing it started with changes
+    # What a continuation may change (epochs, device, threads, progress ...) is not a new config.
+    RunDirectory(
+        tmp_path / "run", compose_cfg("algo.lr=0.001", "epochs=9", "threads=1")
+    ).open().close()
+    assert len((tmp_path / "run" / COMMANDS).read_text().splitlines()) == 2
+
+
+def test_run_json_records_provenance_and_the_owner(tmp_path):
+    directory = RunDirectory(tmp_path / "run", compose_cfg()).open("cpu")
+    info = json.loads((tmp_path / "run" / RUN_INFO).read_text())
+    directory.close()
+    p = info["provenance"]
+    assert p["torch"] == torch.__version__ and p["host"] == socket.gethostname()
+    assert {"numpy", "scipy", "hmepol", "threads", "device", "command"} <= set(p)
+    assert info["owner"]["pid"] == os.getpid() and info["status"] == "running"
+    assert len(info["identity"]) == 16
+
+
+# ------------------------------------------------------------------ files
+def test_files_get_the_permissions_the_umask_gives_and_temporaries_are_removed(tmp_path):
+    old = os.umask(0o022)
+    try:
+        run_dir = tmp_path / "run"
+        run_dir.mkdir()
+        (run_dir / f".{EPOCHS_CSV}.abc123.tmp").write_text("half a write")
+        directory = RunDirectory(run_dir, compose_cfg()).open()
+        atomic_write_text(run_dir / "some.txt", "x")
+        directory.close()
+    finally:
+        os.umask(old)
+    for name in (CONFIG, RUN_INFO, COMMANDS, "some.txt"):
+        assert (run_dir / name).stat().st_mode & 0o777 == 0o644, name
+    assert not list(run_dir.glob("*.tmp")) and not list(run_dir.glob(".*.tmp"))
+
+
+def test_rows_written_before_a_first_checkpoint_are_not_kept(tmp_path):
+    """A crash after epoch 0's rows but before its checkpoint (a full disk, say): the next run
+    into that directory starts again from epoch 0, and writes it once."""
+    cfg = compose_cfg("epochs=2", "progress=false")
+    train_runs([(cfg, tmp_path / "run")])
+    reference = pd.read_csv(tmp_path / "run" / EPOCHS_CSV)
+    (tmp_path / "run" / CHECKPOINT).unlink()  # as if the crash came before the first checkpoint
+    info = json.loads((tmp_path / "run" / RUN_INFO).read_text())
+    (tmp_path / "run" / RUN_INFO).write_text(json.dumps({**info, "status": "running"}))
+    train_runs([(cfg, tmp_path / "run")])
+    again = pd.read_csv(tmp_path / "run" / EPOCHS_CSV)
+    assert list(again.epoch) == [0, 1]
+    timing = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time"]
+    pd.testing.assert_frame_equal(again.drop(columns=timing), reference.drop(columns=timing))
+
+
+# ------------------------------------------------------------------ loud failures
+def test_a_member_whose_numbers_stop_being_finite_fails_alone_and_says_what(tmp_path, monkeypatch):
+    """From epoch 1 on, member 1's world returns NaN positions: member 1 stops with its reason
+    (the positions), its epoch and last finite values recorded; member 0 finishes."""
+    trainer = Trainer(
+        [compose_cfg("epochs=3", "progress=false", f"seed={s}") for s in (0, 1)],
+        [tmp_path / f"seed{s}" for s in (0, 1)],
+    )
+    world, calls = trainer.world, {"n": 0}
+    real_step = world.step
+    steps_per_epoch = trainer.cfg.algo.horizon
+
+    def poisoned(positions, actions, configurations, generator=None, *, noise=None):
+        moved = real_step(positions, actions, configurations, generator, noise=noise)
+        calls["n"] += 1
+        both = moved.shape[0] == 2 * trainer.cfg.algo.trajectories  # members 0 and 1 stepping
+        if calls["n"] > steps_per_epoch and both:  # from the second epoch on
+            moved[moved.shape[0] // 2 :] = math.nan  # member 1's agents
+        return moved
+
+    monkeypatch.setattr(world, "step", poisoned)
+    trainer.train()
+    assert set(trainer.failures) == {tmp_path / "seed1"}
+    info = json.loads((tmp_path / "seed1" / RUN_INFO).read_text())
+    assert info["status"] == "failed" and info["failure"]["epoch"] == 1
+    assert "non-finite positions" in info["failure"]["reason"]
+    assert info["failure"]["last_finite"]["epoch"] == 0
+    assert len(pd.read_csv(tmp_path / "seed1" / EPOCHS_CSV)) == 1
+    assert json.loads((tmp_path / "seed0" / RUN_INFO).read_text())["status"] == "finished"
+    assert len(pd.read_csv(tmp_path / "seed0" / EPOCHS_CSV)) == 3
+
+
+def test_train_runs_reports_a_failed_member_as_a_failure(tmp_path, monkeypatch):
+    cfg = compose_cfg("epochs=2", "progress=false", "algo.lr=1e-3")
+    monkeypatch.setattr(
+        "hmepol_cli.trainer.Trainer._non_finite", lambda self, s, stats: ["log-std"]
+    )
+    with pytest.raises(RunFailure, match="non-finite log-std at epoch 0"):
+        train_runs([(cfg, tmp_path / "run")])
+    assert json.loads((tmp_path / "run" / RUN_INFO).read_text())["status"] == "failed"
+
+
+def test_a_stall_warns(tmp_path, caplog):
+    cfg = compose_cfg(
+        "epochs=3", "progress=false", "algo.kl_threshold=1e-12", "algo.lr_backtrack_tries=0",
+        "alarms.stall_epochs=2",
+    )  # fmt: skip
+    with caplog.at_level("WARNING", logger="hmepol"):
+        train_runs([(cfg, tmp_path / "run")])
+    assert "no off-policy step accepted for 2 epochs" in caplog.text
+    assert (pd.read_csv(tmp_path / "run" / EPOCHS_CSV).off_iters == 0).all()
