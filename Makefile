@@ -7,7 +7,7 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
 DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_fraction=0.25
 
-.PHONY: install demo test bench lint reproduce-quick reproduce reproduce-corridor finetune-corridor clean
+.PHONY: install demo test test-fast bench lint reproduce-quick reproduce reproduce-corridor finetune-corridor clean
 
 install:
 	$(PYTHON) -m pip install --quiet "$(TORCH_SPEC)"
@@ -25,8 +25,13 @@ demo: install
 test: install
 	$(PYTHON) -m pytest
 
+# All but the end-to-end runs of the installed command.
+test-fast: install
+	$(PYTHON) -m pytest -m "not slow"
+
 bench:
 	$(PYTHON) -m benchmarks.run
+	$(PYTHON) -m benchmarks.population
 
 lint:
 	$(PYTHON) -m ruff check hmepol_cli tests benchmarks

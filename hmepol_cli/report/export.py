@@ -1,0 +1,71 @@
+"""Copy the small files of finished runs somewhere they can be kept (docs/results/):
+
+    python -m hmepol_cli.report.export outputs/full docs/results/full
+
+For every run directory under SOURCE (a directory with run.json): config.yaml, run.json,
+epochs.csv and finetune.csv as they are, targets.json, and eval/final.npz with its positions
+stored as float16 (a heatmap bin is 0.04 wide: float16's 1e-3 resolution on [-6, 6] changes no
+figure, and halves the file). Checkpoints, batches.csv and pictures are left out. ``hmepol
+report DEST`` then rebuilds every figure and table from these files alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from hmepol_cli.rundir import (
+    CONFIG,
+    EPOCHS_CSV,
+    EVAL_DIR,
+    FINAL_EVAL,
+    FINETUNE_CSV,
+    RUN_INFO,
+    TARGETS_JSON,
+    atomic_write_bytes,
+    load_positions,
+)
+
+KEPT = (CONFIG, RUN_INFO, EPOCHS_CSV, FINETUNE_CSV, TARGETS_JSON)
+
+
+def export_runs(source: Path, dest: Path) -> list[Path]:
+    """Copy the kept files of every run under ``source`` to the same place under ``dest``."""
+    exported = []
+    for marker in sorted(Path(source).rglob(RUN_INFO)):
+        run_dir = marker.parent
+        target = Path(dest) / run_dir.relative_to(source)
+        target.mkdir(parents=True, exist_ok=True)
+        for name in KEPT:
+            if (run_dir / name).is_file():
+                shutil.copyfile(run_dir / name, target / name)
+        final = run_dir / EVAL_DIR / f"{FINAL_EVAL}.npz"
+        if final.is_file():
+            positions = {
+                f"positions_c{c}": p.astype(np.float16) for c, p in load_positions(final).items()
+            }
+            (target / EVAL_DIR).mkdir(exist_ok=True)
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, **positions)
+            atomic_write_bytes(target / EVAL_DIR / f"{FINAL_EVAL}.npz", buffer.getvalue())
+        exported.append(target)
+    return exported
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m hmepol_cli.report.export", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("source", type=Path, help="folder holding run directories")
+    parser.add_argument("dest", type=Path, help="where their small files go")
+    args = parser.parse_args(argv)
+    runs = export_runs(args.source, args.dest)
+    print(f"{len(runs)} runs exported to {args.dest}")
+
+
+if __name__ == "__main__":
+    main()
