@@ -620,3 +620,32 @@ def test_figure_names_of_long_labels_stay_short_and_distinct():
     assert len(slug(long_a)) <= 80 and len(slug(long_b)) <= 80
     assert slug(long_a) != slug(long_b)
     assert slug("α-Mepol") == "alpha-mepol"
+
+
+def test_exported_runs_rebuild_the_same_summary(tmp_path):
+    """docs/results keeps the small files of runs (positions in float16): the report made from
+    them gives the summary of the report made from the runs themselves."""
+    from hmepol_cli.report.export import export_runs
+    from hmepol_cli.rundir import load_positions
+
+    for algo in ("mepol", "hmepol"):
+        for seed in (0, 1):
+            run_dir = write_run(tmp_path / "runs", algo=algo, seed=seed, final=1.0 + seed / 10)
+            (run_dir / "checkpoints").mkdir()
+            (run_dir / "checkpoints" / "last.pt").write_bytes(b"weights")
+    exported = export_runs(tmp_path / "runs", tmp_path / "kept")
+    assert len(exported) == 4
+    for run_dir in exported:
+        assert not (run_dir / "checkpoints").exists()
+        positions = np.load(run_dir / "eval" / "final.npz")
+        assert all(positions[k].dtype == np.float16 for k in positions.files)
+        original = load_positions(
+            tmp_path / "runs" / run_dir.relative_to(tmp_path / "kept") / "eval" / "final.npz"
+        )
+        for c, array in load_positions(run_dir / "eval" / "final.npz").items():
+            np.testing.assert_allclose(array, original[c], atol=2e-3)
+    run_report(tmp_path / "runs", tmp_path / "report_a")
+    run_report(tmp_path / "kept", tmp_path / "report_b")
+    a = pd.read_csv(tmp_path / "report_a" / "summary.csv")
+    b = pd.read_csv(tmp_path / "report_b" / "summary.csv")
+    pd.testing.assert_frame_equal(a, b)
