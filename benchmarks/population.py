@@ -33,38 +33,20 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
-from hydra import compose, initialize_config_module  # noqa: E402
-from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
 from benchmarks.measure import cpu_name, forward_flops  # noqa: E402
-from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
-from hmepol_cli.config import validate  # noqa: E402
+from benchmarks.run import thesis_config  # noqa: E402
 from hmepol_cli.trainer import Trainer, keep_freed_memory  # noqa: E402
 
 
 def member_configs(setting: str, seeds: list[int], args: argparse.Namespace) -> list:
+    """The thesis preset of ``setting`` (env-algo) for each seed, every iteration forced."""
     env, algo = setting.split("-")
-    cfgs = []
-    for seed in seeds:
-        GlobalHydra.instance().clear()
-        with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
-            cfg = compose(
-                "config",
-                overrides=[
-                    f"experiment={env}_{algo}",
-                    "progress=false",
-                    "algo.kl_threshold=1e9",  # a trust region no step leaves
-                    f"algo.max_off_iters={args.iters}",
-                    f"device={args.device}",
-                    f"matmul_precision={args.precision}",
-                    f"seed={seed}",
-                    *args.override,
-                ],
-            )
-        GlobalHydra.instance().clear()
-        validate(cfg)
-        cfgs.append(cfg)
-    return cfgs
+    device = [f"device={args.device}", f"matmul_precision={args.precision}"]
+    return [
+        thesis_config(env, algo, [*device, f"seed={seed}", *args.override], args.iters)
+        for seed in seeds
+    ]
 
 
 def synchronize(device: str) -> None:

@@ -54,8 +54,8 @@ ENVS = ("slope", "corridor")
 ALGOS = ("mepol", "hmepol")
 
 
-def thesis_config(env: str, algo: str, overrides: list[str]) -> DictConfig:
-    """The shipped preset ``{env}_{algo}``, with every off-policy iteration forced to run."""
+def thesis_config(env: str, algo: str, overrides: list[str], iters: int = OFF_ITERS) -> DictConfig:
+    """The shipped preset ``{env}_{algo}``, with ``iters`` off-policy iterations forced to run."""
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
         cfg = compose(
@@ -64,7 +64,7 @@ def thesis_config(env: str, algo: str, overrides: list[str]) -> DictConfig:
                 f"experiment={env}_{algo}",
                 "progress=false",
                 "algo.kl_threshold=1e9",  # a trust region no step leaves
-                f"algo.max_off_iters={OFF_ITERS}",
+                f"algo.max_off_iters={iters}",
                 *overrides,
             ],
         )

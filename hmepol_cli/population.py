@@ -233,11 +233,11 @@ class Snapshot:
         optimizer: PopulationAdam,
         grads: dict[str, torch.Tensor],
     ) -> None:
-        self.params = {k: v.detach().clone() for k, v in population.params.items()}
-        self.exp_avg = {k: v.clone() for k, v in optimizer.exp_avg.items()}
-        self.exp_avg_sq = {k: v.clone() for k, v in optimizer.exp_avg_sq.items()}
+        self.tensors = [
+            {k: v.detach().clone() for k, v in live.items()}
+            for live in _live(population, optimizer, grads)
+        ]
         self.steps = optimizer.steps.clone()
-        self.grads = {k: v.clone() for k, v in grads.items()}
 
     @torch.no_grad()
     def take(
@@ -248,10 +248,8 @@ class Snapshot:
         mask: torch.Tensor,
     ) -> None:
         """Record the current state of the members where ``mask`` is True."""
-        _where_into(self.params, mask, population.params)
-        _where_into(self.exp_avg, mask, optimizer.exp_avg)
-        _where_into(self.exp_avg_sq, mask, optimizer.exp_avg_sq)
-        _where_into(self.grads, mask, grads)
+        for kept, live in zip(self.tensors, _live(population, optimizer, grads), strict=True):
+            _where_into(kept, mask, live)
         self.steps = torch.where(mask, optimizer.steps, self.steps)
 
     @torch.no_grad()
@@ -263,11 +261,16 @@ class Snapshot:
         mask: torch.Tensor,
     ) -> None:
         """Return the members where ``mask`` is True to the recorded state."""
-        _where_into(population.params, mask, self.params)
-        _where_into(optimizer.exp_avg, mask, self.exp_avg)
-        _where_into(optimizer.exp_avg_sq, mask, self.exp_avg_sq)
-        _where_into(grads, mask, self.grads)
+        for kept, live in zip(self.tensors, _live(population, optimizer, grads), strict=True):
+            _where_into(live, mask, kept)
         optimizer.steps = torch.where(mask, self.steps, optimizer.steps)
+
+
+def _live(
+    population: PolicyPopulation, optimizer: PopulationAdam, grads: dict[str, torch.Tensor]
+) -> list[dict[str, torch.Tensor]]:
+    """The tensors a snapshot keeps: weights, Adam's two moments, the last gradients."""
+    return [population.params, optimizer.exp_avg, optimizer.exp_avg_sq, grads]
 
 
 def _where_into(

@@ -4,30 +4,15 @@ evaluation, fine-tuning and the report."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pandas as pd
 import pytest
 import torch
 
 from hmepol_cli.rollout import collect, draw_configurations
-from tests.test_cli import TINY
-from tests.test_trainer import compose_cfg
+from tests.test_cli import TINY, hmepol
+from tests.test_trainer import compare_vmap_with_the_member_loop, compose_cfg
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU here")
-
-
-def hmepol(tmp_path, *args: str) -> subprocess.CompletedProcess:
-    proc = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", *args],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return proc
 
 
 CASES = [
@@ -59,32 +44,8 @@ def test_a_population_trains_on_the_gpu(tmp_path, algo, policy, bptt):
 
 @pytest.mark.parametrize("algo, policy, bptt", CASES)
 def test_vmap_on_the_gpu_equals_the_member_loop_on_the_gpu(tmp_path, algo, policy, bptt):
-    """Same device, same random streams, float64: the batched call and the loop over members
-    give the same rollout, likelihoods and gradients."""
-    from hmepol_cli.trainer import Trainer
-
-    overrides = (f"algo={algo}", f"policy={policy}", f"policy.bptt={bptt}", "dtype=float64")
-    results = []
-    for vmap in ("on", "off"):
-        cfgs = [
-            compose_cfg(*overrides, "device=cuda", f"vmap={vmap}", f"seed={s}") for s in (0, 1, 2)
-        ]
-        trainer = Trainer(cfgs, [tmp_path / vmap / f"seed{s}" for s in (0, 1, 2)])
-        gens = [m.generator for m in trainer.members]
-        configurations = torch.stack([draw_configurations(trainer.world, 10, 5, g) for g in gens])
-        rollout = collect(trainer.world, trainer.population, None, configurations, 40, gens)
-        log_p = trainer.population.log_prob(
-            None, rollout.inputs, rollout.actions, rollout.histories, trainer.bptt
-        )
-        grads = torch.autograd.grad(
-            log_p.sin().sum(), list(trainer.population.params.values()), allow_unused=True
-        )
-        results.append((rollout.states, log_p, grads))
-    torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-10, atol=1e-10)
-    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-9, atol=1e-9)
-    for a, b in zip(results[0][2], results[1][2], strict=True):
-        if a is not None:
-            torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9)
+    overrides = (f"algo={algo}", f"policy={policy}", f"policy.bptt={bptt}", "device=cuda")
+    compare_vmap_with_the_member_loop(tmp_path, *overrides, grad_rtol=1e-8)
 
 
 @pytest.mark.parametrize("algo, policy, bptt", CASES[:3] + CASES[-2:])
@@ -117,34 +78,15 @@ def test_a_captured_rollout_replays_what_the_steps_compute(tmp_path, algo, polic
 
 def test_cli_train_resume_sweep_finetune_and_report_on_the_gpu(tmp_path):
     run = tmp_path / "run"
-    hmepol(
-        tmp_path, "train", *TINY, "algo=hmepol", "epochs=2", "device=cuda", f"hydra.run.dir={run}"
-    )
-    hmepol(tmp_path, "train", f"resume={run}", "epochs=3", "device=cuda")
+    train = ("train", *TINY, "algo=hmepol", "epochs=2", "device=cuda", f"hydra.run.dir={run}")
+    hmepol(*train, cwd=tmp_path)
+    hmepol("train", f"resume={run}", "epochs=3", "device=cuda", cwd=tmp_path)
     assert len(pd.read_csv(run / "epochs.csv")) == 3
-    hmepol(
-        tmp_path,
-        "sweep",
-        *TINY,
-        "epochs=2",
-        "device=cuda",
-        "seed=0,1,2",
-        "hydra/launcher=population",
-        f"hydra.sweep.dir={tmp_path / 'sweep'}",
-    )
-    hmepol(
-        tmp_path,
-        "finetune",
-        f"init={run}",
-        "epochs=2",
-        "episodes=4",
-        "horizon=30",
-        "targets=1",
-        "config=0",
-        "device=cuda",
-        f"output_dir={tmp_path / 'finetune'}",
-    )
-    assert len(pd.read_csv(tmp_path / "finetune" / "finetune.csv")) == 2
-    report = hmepol(tmp_path, "report", str(tmp_path), "--out", str(tmp_path / "report"))
+    sweep = ("sweep", *TINY, "epochs=2", "device=cuda", "seed=0,1,2", "hydra/launcher=population")
+    hmepol(*sweep, f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path)
+    finetune = ("finetune", f"init={run}", "epochs=2", "episodes=4", "horizon=30", "targets=1")
+    hmepol(*finetune, "config=0", "device=cuda", f"output_dir={tmp_path / 'ft'}", cwd=tmp_path)
+    assert len(pd.read_csv(tmp_path / "ft" / "finetune.csv")) == 2
+    report = hmepol("report", str(tmp_path), "--out", str(tmp_path / "report"), cwd=tmp_path)
     # The training run, the sweep's three members and the fine-tuning.
     assert "5 runs used" in report.stdout
