@@ -147,3 +147,32 @@ def test_a_population_sweep_leaves_the_runs_a_sweep_over_seeds_would(tmp_path):
     assert report.returncode == 0 and "3 runs used" in report.stdout, report.stderr[-2000:]
     again = sweep(tmp_path / "population", "seed=0,1,2", "hydra/launcher=population")
     assert again.returncode == 0 and again.stdout.count("already finished") == 3
+
+
+@pytest.mark.slow
+def test_a_population_runs_as_one_submitit_job(tmp_path):
+    """population_local wraps submitit's local executor the way population_slurm wraps SLURM:
+    one submitted job trains the seeds together and leaves their run directories."""
+    proc = sweep(tmp_path, "seed=0,1", "hydra/launcher=population_local")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "2 runs as 1 jobs" in proc.stdout + proc.stderr
+    found = runs(tmp_path / "sweep")
+    assert sorted(cfg.seed for cfg in found.values()) == [0, 1]
+    for run_dir in found:
+        assert json.loads((run_dir / "run.json").read_text())["status"] == "finished"
+    assert len(list((tmp_path / "sweep" / ".submitit").iterdir())) >= 1  # one job folder
+
+
+def test_the_slurm_population_launcher_composes(tmp_path):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_module
+
+    from hmepol_cli.cli import compose  # noqa: F401  (registers the schema)
+
+    with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
+        cfg = hydra_compose(
+            "config", overrides=["hydra/launcher=population_slurm"], return_hydra_config=True
+        )
+    launcher = cfg.hydra.launcher
+    assert launcher._target_.endswith("PopulationLauncher") and launcher.max_members == 8
+    assert launcher.inner._target_.endswith("SlurmLauncher") and launcher.inner.gpus_per_node == 1
