@@ -325,7 +325,7 @@ class Trainer:
 
         A member whose rollout holds a non-finite position, action or history stops here:
         its stats name what broke (``broken``) and it takes no update."""
-        a, e = self.cfg.algo, self.cfg.estimator
+        a = self.cfg.algo
         due = list(range(self.size)) if due is None else due
         members = torch.tensor(due, device=self.device)
         generators = [self.members[s].generator for s in due]
