@@ -293,3 +293,20 @@ def test_finetuning_uses_the_environments_reward_and_termination(tmp_path):
 def test_configurations_whose_spaces_differ_are_refused():
     with pytest.raises(ConfigError, match=r"env.configs\[1\].*share the observation"):
         walk_world(configs=[{}, {"dim": 3}])
+
+
+def test_your_own_environment_by_module_and_id(tmp_path, monkeypatch):
+    """env.id=<module>:<id>: the module that registers the id is imported first (Gymnasium's
+    own convention, which gymnasium.make follows too); a module that is not there is refused."""
+    (tmp_path / "my_walks.py").write_text(
+        "import gymnasium\n"
+        "gymnasium.register(id='MyWalk-v0', entry_point='tests.gym_toy:Walk',\n"
+        "                   kwargs={'drift': 0.25})\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    world = make_world(OmegaConf.create({"name": "gym", "id": "my_walks:MyWalk-v0"}))
+    policy, configurations = policy_of(world, log_std=-20.0), torch.zeros(2, dtype=torch.long)
+    rollout = collect_single(world, policy, configurations, 3, torch.Generator().manual_seed(0))
+    assert (rollout.states[:, 1:, 1] - 0.25).abs().max() < 0.01  # its drift: this environment
+    with pytest.raises(ConfigError, match="'no_such_module' .* cannot be imported"):
+        make_world(OmegaConf.create({"name": "gym", "id": "no_such_module:MyWalk-v0"}))

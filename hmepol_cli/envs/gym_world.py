@@ -31,6 +31,7 @@ is hmepol's T.
 from __future__ import annotations
 
 import difflib
+import importlib
 import math
 from collections.abc import Sequence
 from functools import partial
@@ -375,10 +376,21 @@ def _plain(value: Any) -> Any:
 
 
 def _check_id(env_id: str) -> str:
+    """A registered id, or ``module:id``: Gymnasium's way to name an id that ``module``
+    registers when imported (your own environment), which gymnasium.make understands too."""
+    module, _, name = env_id.rpartition(":")
+    if module:
+        try:
+            importlib.import_module(module)
+        except ImportError as error:
+            raise ConfigError(
+                f"env.id={env_id!r}: the module {module!r} that should register {name!r} cannot "
+                f"be imported ({error}); is it on PYTHONPATH?"
+            ) from None
     try:
-        gym.spec(env_id)
+        gym.spec(name)
     except gym.error.Error:
-        close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+        close = difflib.get_close_matches(name, list(gym.registry), n=3)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
         raise ConfigError(
             f"env.id={env_id!r} is not a registered Gymnasium id{hint} (ids are listed by "
@@ -397,8 +409,8 @@ def _check_probs(probs: Sequence[float] | None, n: int) -> tuple[float, ...]:
         or not sum(values) > 0
     ):
         raise ConfigError(
-            f"env.probs={values!r} must hold {n} finite numbers >= 0 (one per configuration of "
-            "env.configs), not all 0"
+            f"env.probs={values!r} must hold {n} finite number{'s' if n > 1 else ''} >= 0, one "
+            f"per configuration of env.configs, not all 0"
         )
     total = float(sum(values))
     return tuple(float(p) / total for p in values)
@@ -449,10 +461,19 @@ def _spaces(
                 "(a vector of numbers)"
             )
     for c, (obs_c, act_c) in enumerate(spaces[1:], start=1):
-        if obs_c != observation or act_c != action:
-            raise ConfigError(
-                f"env.configs[{c}]={configurations[c]!r} gives the spaces {obs_c}, {act_c}, "
-                f"configuration 0 gives {observation}, {action}: every configuration must "
-                "share the observation and action spaces"
-            )
+        for name, mine, first in (("observation", obs_c, observation), ("action", act_c, action)):
+            if mine != first:
+                raise ConfigError(
+                    f"env.configs[{c}]={configurations[c]!r} gives the {name} space "
+                    f"{_describe(mine, first)}, configuration 0 {_describe(first, mine)}: every "
+                    "configuration must share the observation and action spaces"
+                )
     return observation, action
+
+
+def _describe(space: gym.Space, other: gym.Space) -> str:
+    """A space in a few words: its shape and dtype, or its bounds where only they differ."""
+    shape = getattr(space, "shape", None)
+    if shape != getattr(other, "shape", None) or space.dtype != other.dtype:
+        return f"{type(space).__name__}{shape} {space.dtype}"
+    return f"with bounds [{space.low.min():g}, {space.high.max():g}]"
