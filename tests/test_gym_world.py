@@ -245,6 +245,24 @@ def test_hmepol_in_a_gym_world_resumes_exactly(tmp_path):
     assert (tmp_path / "straight" / "eval" / "final" / "heatmap.png").is_file()
 
 
+def test_the_report_names_a_gym_run_by_its_id_and_groups_its_configurations(tmp_path):
+    """Two seeds on the walker with two drifts: one group, figures named after the id (made
+    safe for file names), configurations named by what differs between them."""
+    from hmepol_cli.report import run_report
+
+    for seed in (0, 1):
+        cfg = compose_cfg(*WALK, f"seed={seed}", "epochs=2",
+                          "env.configs=[{drift:0.0,wall:9.0},{drift:0.1,wall:9.0}]")  # fmt: skip
+        Trainer(cfg, tmp_path / "runs" / f"seed{seed}").train()
+    run_report(tmp_path / "runs", tmp_path / "report")
+    figures = {p.name for p in (tmp_path / "report" / "figures").glob("*.png")}
+    assert "hmepol-test-Walk-v0_heatmaps.png" in figures, figures
+    assert "hmepol-test-Walk-v0_entropy_epochs.png" in figures, figures
+    summary = pd.read_csv(tmp_path / "report" / "summary.csv")
+    assert set(summary.config) == {"average", "0: drift=0.0", "1: drift=0.1"}
+    assert set(summary.n_seeds) == {2}
+
+
 def test_evaluation_draws_the_projection_of_the_observation():
     world = walk_world(projection=[1, 0])
     population = PolicyPopulation([policy_of(world)])

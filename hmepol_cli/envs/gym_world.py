@@ -217,8 +217,18 @@ class GymEpisodes:
         )
 
 
-def _configuration_name(kwargs: dict[str, Any]) -> str:
-    return ", ".join(f"{k}={v}" for k, v in kwargs.items()) or "default"
+def _configuration_names(configurations: list[dict[str, Any]]) -> tuple[str, ...]:
+    """Each configuration named by the keywords in which it differs from the others
+    ("g=5.0", "g=15.0"); one alone, or one with nothing of its own, is "default"."""
+    shared = {
+        k
+        for k in set().union(*configurations)
+        if all(k in c and c[k] == configurations[0].get(k) for c in configurations)
+    }
+    return tuple(
+        ", ".join(f"{k}={v}" for k, v in c.items() if k not in shared) or "default"
+        for c in configurations
+    )
 
 
 class GymWorld:
@@ -242,7 +252,7 @@ class GymWorld:
         self.env_id = _check_id(env_id)
         self.configurations = [dict(c) for c in (configurations or [{}])]
         n = len(self.configurations)
-        self.configuration_names = tuple(_configuration_name(c) for c in self.configurations)
+        self.configuration_names = _configuration_names(self.configurations)
         self.configuration_probs = _check_probs(probs, n)
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
             raise ConfigError(f"env.workers={workers!r} must be a whole number >= 0")
