@@ -73,6 +73,7 @@ RESUMABLE_KEYS = (
     "resume",
     "skip_finished",
     "seeds",
+    "env.workers",  # a Gymnasium world's processes: the same episodes with any count
 )
 
 

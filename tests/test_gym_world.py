@@ -166,6 +166,32 @@ def test_each_member_of_a_population_steps_its_own_episodes():
         assert torch.equal(together.states[i], alone.states)
 
 
+def test_ant_xy_replays_in_a_plain_gymnasium_ant_from_its_seed():
+    """env=ant_xy (MuJoCo): the reference's 29-number state (qpos, qvel; x, y first), entropy
+    on x-y; a rollout's trajectory is what gymnasium.make('Ant-v5', ...) gives when reset with
+    the episode's seed (the first draw of the generator) and stepped with the clipped actions."""
+    pytest.importorskip("mujoco")
+    import gymnasium
+
+    from hmepol_cli.envs.gym_world import SEED_BOUND
+
+    cfg = compose_cfg("env=ant_xy")
+    world = make_world(cfg.env)
+    assert (world.state_dim, world.action_dim, world.features) == (29, 8, (0, 1))
+    policy = policy_of(world, log_std=0.5)  # actions often beyond the bound of 1: clipped
+    rollout = collect_single(world, policy, torch.zeros(2, dtype=torch.long), 6,
+                             torch.Generator().manual_seed(7))  # fmt: skip
+    seed = int(torch.randint(0, SEED_BOUND, (2,), generator=torch.Generator().manual_seed(7))[1])
+    env = gymnasium.make("Ant-v5", **OmegaConf.to_container(cfg.env.configs[0]))
+    obs, _ = env.reset(seed=seed)
+    replayed = [obs]
+    for action in rollout.actions[1].double().clamp(-1.0, 1.0).numpy():
+        replayed.append(env.step(action.astype(np.float32))[0])
+    np.testing.assert_allclose(rollout.states[1].double().numpy(), np.stack(replayed), atol=1e-5)
+    assert (rollout.actions.abs() > 1).any()
+    world.close()
+
+
 # ------------------------------------------------------------------ training
 def test_one_configuration_per_mini_batch_and_each_runs_its_own_environment(tmp_path):
     """Three drifts, p_M = (0.5, 0.25, 0.25), B = 2: both trajectories of a mini-batch share a

@@ -92,6 +92,8 @@ def test_a_setting_added_later_as_null_is_no_other_config():
     )
     assert changed == ["env.id='<absent>' (now 'Ant-v5')"]
     assert identity_differences({"env": {"name": "gym", "id": "Ant-v5"}}, {"env": {"name": "gym"}})
+    # How many processes step a Gymnasium world changes no number: a run continues with another.
+    assert identity_differences({"env": {"workers": 0}}, {"env": {"workers": 4}}) == []
     configs = {"env": {"configs": [{"g": 5.0}, {"g": 15.0}]}}
     assert identity_differences(configs, {"env": {"configs": [{"g": 5.0}, {"g": 10.0}]}})
 

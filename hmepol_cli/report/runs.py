@@ -55,6 +55,7 @@ RUN_SPECIFIC_KEYS = {
     "cuda_graphs",
     "matmul_precision",
     "eval.every",
+    "env.workers",  # processes stepping a Gymnasium world: the same numbers with any count
     # The effective wind is read once (run.json) and stored under the synthetic key "wind".
     "wind",
     "env.wind",
