@@ -354,3 +354,22 @@ def test_your_own_environment_by_module_and_id(tmp_path, monkeypatch):
     assert (rollout.states[:, 1:, 1] - 0.25).abs().max() < 0.01  # its drift: this environment
     with pytest.raises(ConfigError, match="'no_such_module' .* cannot be imported"):
         make_world(OmegaConf.create({"name": "gym", "id": "no_such_module:MyWalk-v0"}))
+
+
+@pytest.mark.slow
+def test_the_command_trains_and_finetunes_in_a_gymnasium_world(tmp_path):
+    """The real command end to end: train HMepol on MountainCar, then fine-tune on its reward."""
+    from tests.test_cli import hmepol
+
+    run = tmp_path / "run"
+    hmepol("train", "env=mountaincar", "algo=hmepol", "epochs=2", "algo.trajectories=4",
+           "algo.horizon=30", "algo.batch_size=2", "estimator.k=3", *SMALL,
+           f"hydra.run.dir={run}", cwd=tmp_path)  # fmt: skip
+    rows = pd.read_csv(run / "epochs.csv")
+    assert list(rows.epoch) == [0, 1] and np.isfinite(rows.entropy).all()
+    info = pd.read_json(run / "run.json", typ="series")
+    assert info["env_id"] == "MountainCarContinuous-v0" and info["status"] == "finished"
+    hmepol("finetune", f"init={run}", "epochs=2", "episodes=3", "horizon=20", "progress=false",
+           f"output_dir={tmp_path / 'ft'}", cwd=tmp_path)  # fmt: skip
+    returns = pd.read_csv(tmp_path / "ft" / "finetune.csv")["return"]
+    assert len(returns) == 2 and (returns <= 0).all()  # MountainCar charges for every push
