@@ -408,7 +408,7 @@ def _report(args: list[str]) -> None:
 def _show(args: list[str]) -> None:
     import argparse
 
-    from hmepol_cli.envs import ENVIRONMENTS, make_world
+    from hmepol_cli.envs import ENVIRONMENTS, NavigationWorld, make_world
     from hmepol_cli.envs.render import show_world
 
     parser = argparse.ArgumentParser(
@@ -424,8 +424,10 @@ def _show(args: list[str]) -> None:
     if unknown:
         fail(f"unknown option(s) {', '.join(sorted(unknown))}; use env=NAME and wind=FORCE")
     name = values.get("env", "slope")
-    if name not in ENVIRONMENTS:
-        fail(f"unknown env {name!r}; choose one of: {', '.join(ENVIRONMENTS)}")
+    # Only the 2-D worlds are maps; a Gymnasium world has no walls to draw.
+    maps = [n for n, world in ENVIRONMENTS.items() if issubclass(world, NavigationWorld)]
+    if name not in maps:
+        fail(f"env={name!r} cannot be drawn; choose one of: {', '.join(maps)}")
     try:
         wind = float(values.get("wind", 0.4))
     except ValueError:

@@ -19,10 +19,19 @@ from hmepol_cli.errors import ConfigError
 
 @dataclass
 class EnvConfig:
-    name: str = "slope"
+    name: str = "slope"  # slope | corridor | multigrid | gym (any Gymnasium id, below)
     # corridor only: force of the wind along the corridor (top-level `wind` override); null in
     # fine-tuning means the pre-trained run's wind.
     wind: float | None = 0.4
+    # gym only (env=gym, or a preset such as env=ant_xy):
+    id: str | None = None  # a Gymnasium id, e.g. Ant-v5, MountainCarContinuous-v0
+    features: list[int] | None = None  # observation indices the entropy is on (null: all)
+    # The class M_1..M_I: one gymnasium.make keyword set per configuration (null: [{}]), drawn
+    # with probabilities p_M (null: uniform).
+    configs: list[dict[str, Any]] | None = None
+    probs: list[float] | None = None
+    projection: list[int] | None = None  # two indices heatmaps draw (null: first two features)
+    workers: int = 0  # processes stepping the sub-environments (0: this process)
 
 
 @dataclass
@@ -229,6 +238,8 @@ def validate(cfg: DictConfig) -> None:
     if cfg.seeds is not None and len(set(cfg.seeds)) != len(cfg.seeds):
         raise ConfigError(f"seeds={list(cfg.seeds)} holds a seed twice")
     validate_policy(cfg.policy)
+    # Last: a Gymnasium world makes its environments to check their spaces.
+    ENVIRONMENTS[cfg.env.name].check_config(cfg.env)
 
 
 def validate_policy(policy: DictConfig) -> None:

@@ -1,8 +1,8 @@
 """Fresh rollouts of trained policies in every configuration, saved as raw data and pictures.
 
 ``eval/<name>.npz`` holds ``positions_c{c}``: (n, T + 1, 2) float32 positions of n trajectories in
-configuration c. The report draws heatmaps and trajectory plots from these files, so it never
-has to run a policy itself.
+configuration c (in a Gymnasium world, the observation's two ``env.projection`` indices). The
+report draws heatmaps and trajectory plots from these files, so it never has to run a policy.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hmepol_cli.envs.base import NavigationWorld
+from hmepol_cli.envs import World
 from hmepol_cli.population import PolicyPopulation
 from hmepol_cli.report.plots import save_run_plots
 from hmepol_cli.rollout import collect
@@ -21,7 +21,7 @@ from hmepol_cli.rundir import save_positions
 
 
 def rollout_positions(
-    world: NavigationWorld,
+    world: World,
     population: PolicyPopulation,
     trajectories: int,
     horizon: int,
@@ -34,14 +34,15 @@ def rollout_positions(
     for c in range(world.n_configurations):
         configurations = torch.full((size, trajectories), c, dtype=torch.long, device=world.device)
         rollout = collect(world, population, None, configurations, horizon, generators)
-        states = rollout.states.float().cpu().numpy()
+        # What a heatmap draws: the position, or a Gymnasium world's two projection indices.
+        states = world.plane(rollout.states).float().cpu().numpy()
         for s in range(size):
             positions[s][c] = states[s]
     return positions
 
 
 def evaluate_and_save(
-    world: NavigationWorld,
+    world: World,
     population: PolicyPopulation,
     out_dirs: Sequence[Path],
     name: str,

@@ -6,22 +6,37 @@ start. Member s's randomness comes from its own generator, drawn up front in a f
 (start positions, action noise (N, T, a), world noise (N, T, k)), so it does not depend on the
 other members or on how the steps are computed: member s of a population sees exactly the
 random numbers of a run of its own.
+
+One step loop serves every world: a *transition* maps (t, states, actions) to the next states
+(and, for a Gymnasium world, the environment's rewards and which episodes it ended). The 2-D
+worlds step as tensors from noise drawn up front (and on a GPU replay as a CUDA graph); a
+Gymnasium world (:class:`~hmepol_cli.envs.gym_world.GymWorld`) steps its vector environment, its
+episodes reset with seeds drawn from each member's generator (seeds (N,), then action noise).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
 
 from hmepol_cli.envs.base import NavigationWorld
+from hmepol_cli.envs.gym_world import GymWorld
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.population import PolicyPopulation
 
 if TYPE_CHECKING:
-    from hmepol_cli.finetune.task import GoalTask
+    from hmepol_cli.finetune.task import GoalTask, RewardTask
+
+World = NavigationWorld | GymWorld
+# (t, states (S', N, d), actions (S', N, a)) -> (next states (S', N, d), rewards (S', N) or None,
+# ended (S', N) bool or None: the environment ended the episode on this step)
+Transition = Callable[
+    [int, torch.Tensor, torch.Tensor],
+    tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None],
+]
 
 
 @dataclass
@@ -35,11 +50,15 @@ class Rollout:
     configurations: torch.Tensor  # (S, N) long: configuration of each trajectory
     means: torch.Tensor  # (S, N, T, a): the sampling policy's mean action at each step
     log_std: torch.Tensor  # (S, a): the sampling policy's log-std
-    # Goal tasks only (None otherwise): steps before the episode ended, and the step it reached
-    # the target on; the trajectories may be shorter than the task's horizon T.
+    # Goal tasks and Gymnasium worlds (None otherwise): steps taken before the episode ended;
+    # in fine-tuning the trajectories may be shorter than the task's horizon T.
     alive: torch.Tensor | None = None  # (S, N, T) bool
-    success: torch.Tensor | None = None  # (S, N, T) bool
+    success: torch.Tensor | None = None  # (S, N, T) bool, goal tasks: it reached the target
     horizon: int | None = None  # the task's T
+    # Gymnasium worlds: the environment's reward of each step (0 after the end), and the step the
+    # environment ended the episode on (terminated or truncated).
+    reward: torch.Tensor | None = None  # (S, N, T)
+    ended: torch.Tensor | None = None  # (S, N, T) bool
 
     @property
     def particles(self) -> torch.Tensor:
@@ -66,11 +85,20 @@ class Rollout:
             }
         )
 
-    # -- goal tasks
+    # -- fine-tuning tasks
     @property
     def rewards(self) -> torch.Tensor:
-        """1 on the step an episode reaches the target, 0 otherwise. (..., T)"""
+        """The environment's reward (Gymnasium worlds), or 1 on the step an episode reaches the
+        target of a goal task, 0 otherwise. (..., T)"""
+        if self.reward is not None:
+            return self.reward
         return self.success.to(self.states.dtype)
+
+    @property
+    def ends(self) -> torch.Tensor:
+        """True on the step an episode ended: reached its target, or the environment ended it.
+        (..., T) bool"""
+        return self.ended if self.ended is not None else self.success
 
     @property
     def returns(self) -> torch.Tensor:
@@ -87,15 +115,55 @@ class Rollout:
 
 
 def draw_configurations(
-    world: NavigationWorld, n_trajectories: int, batch_size: int, generator: torch.Generator
+    world: World, n_trajectories: int, batch_size: int, generator: torch.Generator
 ) -> torch.Tensor:
     """One configuration per mini-batch of B trajectories, drawn from p_M (thesis 4.2.3). (N,)"""
     per_batch = world.sample_configurations(n_trajectories // batch_size, generator)
     return per_batch.repeat_interleave(batch_size)
 
 
+@dataclass
+class EpisodeLog:
+    """What an episodic rollout records besides states (goal tasks, Gymnasium worlds), (S', N, T).
+
+    ``reached``: a goal task's test, whose first success ends the episode; ``stop``: end the
+    rollout once every episode has ended (fine-tuning), instead of running all T steps (the
+    particles of pre-training)."""
+
+    alive: torch.Tensor
+    success: torch.Tensor | None = None
+    reward: torch.Tensor | None = None
+    ended: torch.Tensor | None = None
+    reached: Callable[[torch.Tensor], torch.Tensor] | None = None
+    stop: bool = False
+
+    def record(
+        self,
+        t: int,
+        running: torch.Tensor,
+        position: torch.Tensor,
+        reward: torch.Tensor | None,
+        ended: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """Write step t; -> the episodes still running after it. (S', N) bool"""
+        self.alive[:, :, t] = running
+        if self.reached is not None:  # a goal task: reaching the target ends the episode
+            s, n = running.shape
+            ended = self.reached(position.flatten(0, 1)).view(s, n)
+            self.success[:, :, t] = running & ended
+        if self.reward is not None:
+            self.reward[:, :, t] = torch.where(running, reward, torch.zeros_like(reward))
+        if self.ended is not None:
+            self.ended[:, :, t] = running & ended
+        return running & ~ended
+
+    def truncate(self, steps: int) -> EpisodeLog:
+        cut = {k: v[:, :, :steps] for k, v in vars(self).items() if isinstance(v, torch.Tensor)}
+        return EpisodeLog(**{**vars(self), **cut})
+
+
 def collect(
-    world: NavigationWorld,
+    world: World,
     population: PolicyPopulation,
     members: torch.Tensor | None,
     configurations: torch.Tensor,
@@ -103,16 +171,21 @@ def collect(
     generators: Sequence[torch.Generator],
     deterministic: bool = False,
     graphs: dict | None = None,
-    task: GoalTask | None = None,
+    task: GoalTask | RewardTask | None = None,
 ) -> Rollout:
     """Run one trajectory per entry of ``configurations`` (S', N) for ``horizon`` steps, member i of
     the selection ``members`` (None: all) acting in row i with randomness from generators[i].
 
-    ``task``: a goal task (fine-tuning): an episode ends on the step it reaches the target, and
-    the rollout stops once every episode has. ``graphs``: on a GPU, a cache in which the T steps
-    are captured once as a CUDA graph and replayed for every later rollout of the same shape (one
-    launch instead of ~100 a step).
+    ``task`` (fine-tuning): a goal task, whose episodes end on the step they reach the target, or
+    a Gymnasium world's own reward and termination; the rollout stops once every episode has
+    ended. ``graphs``: on a GPU, a cache in which the T steps of a 2-D world are captured once as a
+    CUDA graph and replayed for every later rollout of the same shape (one launch instead of ~100
+    a step); a Gymnasium world steps outside torch and is never captured.
     """
+    if isinstance(world, GymWorld):
+        return _collect_gym(
+            world, population, members, configurations, horizon, generators, deterministic, task
+        )
     s, n = configurations.shape
     device, dtype = world.device, world.dtype
     with torch.inference_mode():
@@ -125,9 +198,7 @@ def collect(
         position = torch.stack(starts)  # (S', N, d)
         action_noise = torch.stack(action_noise)  # (S', N, T, a)
         world_noise = torch.stack(world_noise).flatten(0, 1)  # (S' N, T, k)
-    log_std = population.params["log_std"].detach().clone()
-    if members is not None:
-        log_std = log_std.index_select(0, members)
+    log_std = _log_std(population, members)
     if graphs is not None and task is None and device.type == "cuda":
         key = (
             id(world),
@@ -142,31 +213,120 @@ def collect(
         if key not in graphs:
             graphs[key] = CapturedSteps(world, population, members, s, n, horizon, deterministic)
         return graphs[key].run(position, action_noise, world_noise, configurations, log_std)
-    buffers = _storage(world, population, s, n, horizon)
-    alive = success = None
+    episodes = None
     if task is not None:
         alive = torch.zeros(s, n, horizon, dtype=torch.bool, device=device)
         success = torch.zeros_like(alive)
-    steps = _steps(world, population, members, position, action_noise, world_noise,
-                   configurations.flatten(), deterministic, *buffers, alive=alive, success=success,
-                   task=task)  # fmt: skip
+        episodes = EpisodeLog(alive, success=success, reached=task.reached, stop=True)
+    transition = world_transition(world, configurations.flatten(), world_noise)
+    return _run_steps(
+        world, population, members, configurations, position, action_noise, transition,
+        horizon, deterministic, log_std, episodes, task,
+    )  # fmt: skip
+
+
+def _collect_gym(
+    world: GymWorld,
+    population: PolicyPopulation,
+    members: torch.Tensor | None,
+    configurations: torch.Tensor,
+    horizon: int,
+    generators: Sequence[torch.Generator],
+    deterministic: bool,
+    task: RewardTask | None,
+) -> Rollout:
+    """The rollout in a Gymnasium world: S' x N sub-environments of one vector environment."""
+    s, n = configurations.shape
+    with torch.inference_mode():
+        seeds, action_noise = [], []
+        for generator in generators:
+            seeds.append(world.draw_seeds(n, generator))
+            action_noise.append(
+                torch.randn(
+                    n,
+                    horizon,
+                    world.action_dim,
+                    device=world.device,
+                    dtype=world.dtype,
+                    generator=generator,
+                )  # fmt: skip
+            )
+        action_noise = torch.stack(action_noise)  # (S', N, T, a)
+        episodes = world.episodes((s, n))
+        position = episodes.start(configurations, torch.stack(seeds))  # (S', N, d)
+    alive = torch.zeros(s, n, horizon, dtype=torch.bool, device=world.device)
+    log = EpisodeLog(
+        alive,
+        reward=torch.zeros(s, n, horizon, device=world.device, dtype=world.dtype),
+        ended=torch.zeros_like(alive),
+        stop=task is not None,
+    )
+    return _run_steps(
+        world, population, members, configurations, position, action_noise, episodes.step,
+        horizon, deterministic, _log_std(population, members), log, task,
+    )  # fmt: skip
+
+
+def _log_std(population: PolicyPopulation, members: torch.Tensor | None) -> torch.Tensor:
+    log_std = population.params["log_std"].detach().clone()
+    return log_std if members is None else log_std.index_select(0, members)
+
+
+def _run_steps(
+    world: World,
+    population: PolicyPopulation,
+    members: torch.Tensor | None,
+    configurations: torch.Tensor,
+    position: torch.Tensor,
+    action_noise: torch.Tensor,
+    transition: Transition,
+    horizon: int,
+    deterministic: bool,
+    log_std: torch.Tensor,
+    episodes: EpisodeLog | None,
+    task: GoalTask | RewardTask | None,
+) -> Rollout:
+    """Storage, the step loop, and the Rollout (cut where every episode of a task ended)."""
+    s, n = configurations.shape
+    buffers = _storage(world, population, s, n, horizon)
+    steps = _steps(population, members, position, action_noise, transition, deterministic,
+                   *buffers, episodes=episodes)  # fmt: skip
     states, actions, histories, log_probs, means = buffers
-    if steps < horizon:  # every episode of the goal task ended early
+    if steps < horizon:  # every episode of the fine-tuning task ended early
         states, actions, histories = (
             states[:, :, : steps + 1],
             actions[:, :, :steps],
             histories[:, :, :steps],
         )
         log_probs, means = log_probs[:, :, :steps], means[:, :, :steps]
-        alive, success = alive[:, :, :steps], success[:, :, :steps]
-    horizon_of_task = task.horizon if task is not None else None
+        episodes = episodes.truncate(steps)
+    record = {}
+    if episodes is not None:
+        record = dict(alive=episodes.alive, success=episodes.success, reward=episodes.reward,
+                      ended=episodes.ended)  # fmt: skip
     return Rollout(
-        states, actions, histories, log_probs, configurations, means, log_std, alive, success,
-        horizon_of_task,
+        states, actions, histories, log_probs, configurations, means, log_std,
+        horizon=task.horizon if task is not None else None, **record,
     )  # fmt: skip
 
 
-def _storage(world: NavigationWorld, population: PolicyPopulation, s: int, n: int, horizon: int):
+def world_transition(
+    world: NavigationWorld, flat_configs: torch.Tensor, world_noise: torch.Tensor
+) -> Transition:
+    """A 2-D world's step for every agent at once, with the noise of step t from
+    ``world_noise`` (S' N, T, k); flat_configs (S' N,)."""
+
+    def transition(t: int, position: torch.Tensor, action: torch.Tensor):
+        s, n = position.shape[:2]
+        moved = world.step(
+            position.flatten(0, 1), action.flatten(0, 1), flat_configs, noise=world_noise[:, t]
+        )
+        return moved.view(s, n, -1), None, None
+
+    return transition
+
+
+def _storage(world: World, population: PolicyPopulation, s: int, n: int, horizon: int):
     """Empty (states, actions, histories, log-likelihoods, means) of S' x N trajectories of T
     steps. Made outside inference mode: the off-policy loop differentiates through them."""
     kw = dict(device=world.device, dtype=world.dtype)
@@ -180,22 +340,18 @@ def _storage(world: NavigationWorld, population: PolicyPopulation, s: int, n: in
 
 
 def _steps(
-    world: NavigationWorld,
     population: PolicyPopulation,
     members: torch.Tensor | None,
     position: torch.Tensor,
     action_noise: torch.Tensor,
-    world_noise: torch.Tensor,
-    flat_configs: torch.Tensor,
+    transition: Transition,
     deterministic: bool,
     states: torch.Tensor,
     actions: torch.Tensor,
     histories: torch.Tensor,
     log_probs: torch.Tensor,
     means: torch.Tensor,
-    alive: torch.Tensor | None = None,
-    success: torch.Tensor | None = None,
-    task: GoalTask | None = None,
+    episodes: EpisodeLog | None = None,
 ) -> int:
     """The T steps of a rollout, written into the storage. -> the steps taken"""
     s, n, horizon = actions.shape[:3]
@@ -207,25 +363,19 @@ def _steps(
             histories[:, :, t] = history
             noise = None if deterministic else action_noise[:, :, t]
             action, log_prob, history, mean = population.act(members, position, history, noise)
-            position = world.step(
-                position.flatten(0, 1),
-                action.flatten(0, 1),
-                flat_configs,
-                noise=world_noise[:, t],
-            ).view(s, n, -1)
+            position, reward, ended = transition(t, position, action)
             actions[:, :, t], log_probs[:, :, t], means[:, :, t] = action, log_prob, mean
             states[:, :, t + 1] = position
-            if task is not None:
-                alive[:, :, t] = running
-                success[:, :, t] = running & task.reached(position.flatten(0, 1)).view(s, n)
-                running = running & ~success[:, :, t]
-                if not running.any():  # every episode reached its target
+            if episodes is not None:
+                running = episodes.record(t, running, position, reward, ended)
+                if episodes.stop and not running.any():  # every episode ended
                     return t + 1
     return horizon
 
 
 class CapturedSteps:
-    """The T steps of a rollout of one shape as a CUDA graph, replayed on fresh inputs.
+    """The T steps of a rollout of one shape in a 2-D world as a CUDA graph, replayed on fresh
+    inputs.
 
     The graph reads the population's parameters from their storage, which the optimizer
     updates in place, so a replay always acts with the current policies."""
@@ -247,16 +397,15 @@ class CapturedSteps:
         self.configurations = torch.zeros(s * n, dtype=torch.long, device=world.device)
         self.outputs = _storage(world, population, s, n, horizon)
         members = None if members is None else members.clone()
+        transition = world_transition(world, self.configurations, self.world_noise)
 
         def body() -> None:
             _steps(
-                world,
                 population,
                 members,
                 self.position,
                 self.action_noise,
-                self.world_noise,
-                self.configurations,
+                transition,
                 deterministic,
                 *self.outputs,
             )
@@ -289,13 +438,13 @@ class CapturedSteps:
 
 
 def collect_single(
-    world: NavigationWorld,
+    world: World,
     policy: Policy,
     configurations: torch.Tensor,
     horizon: int,
     generator: torch.Generator,
     deterministic: bool = False,
-    task: GoalTask | None = None,
+    task: GoalTask | RewardTask | None = None,
 ) -> Rollout:
     """The rollout of one policy (a population of one, with a copy of its weights): configurations
     (N,) -> a Rollout of shapes (N, T, ...), without the member dimension."""
@@ -314,12 +463,12 @@ def collect_single(
 
 
 def collect_episodes(
-    world: NavigationWorld,
+    world: World,
     policy: Policy,
-    task: GoalTask,
+    task: GoalTask | RewardTask,
     episodes: int,
     generator: torch.Generator,
 ) -> Rollout:
-    """``episodes`` episodes of one goal task (fine-tuning), stepped together. (N, T, ...)"""
+    """``episodes`` episodes of one fine-tuning task, stepped together. (N, T, ...)"""
     configurations = torch.full((episodes,), task.config, dtype=torch.long, device=world.device)
     return collect_single(world, policy, configurations, task.horizon, generator, task=task)

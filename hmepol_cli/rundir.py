@@ -73,6 +73,7 @@ RESUMABLE_KEYS = (
     "resume",
     "skip_finished",
     "seeds",
+    "env.workers",  # a Gymnasium world's processes: the same episodes with any count
 )
 
 
@@ -218,7 +219,8 @@ def load_trained_policy(path: Path, device: str | torch.device = "cpu"):
 
 # ------------------------------------------------------------------------------ identity
 def flat_config(cfg: DictConfig | dict) -> dict[str, Any]:
-    """{"a.b": value} of a config (resolved), lists as tuples."""
+    """{"a.b": value} of a config (resolved), lists as tuples: hashable values, so the report can
+    group runs by them (a list of keyword sets, env.configs, as tuples of (key, value) pairs)."""
     container = OmegaConf.to_container(cfg, resolve=True) if OmegaConf.is_config(cfg) else cfg
 
     def walk(node: Any, prefix: str) -> dict[str, Any]:
@@ -227,9 +229,18 @@ def flat_config(cfg: DictConfig | dict) -> dict[str, Any]:
             for key, value in node.items():
                 out.update(walk(value, f"{prefix}{key}."))
             return out
-        return {prefix[:-1]: tuple(node) if isinstance(node, list) else node}
+        return {prefix[:-1]: hashable_value(node)}
 
     return walk(container, "")
+
+
+def hashable_value(value: Any) -> Any:
+    """Lists as tuples and dicts as sorted (key, value) tuples, all the way down."""
+    if isinstance(value, list | tuple):
+        return tuple(hashable_value(v) for v in value)
+    if isinstance(value, dict):
+        return tuple(sorted((str(k), hashable_value(v)) for k, v in value.items()))
+    return value
 
 
 def identity_of(cfg: DictConfig | dict) -> dict[str, Any]:
@@ -247,13 +258,16 @@ def identity_hash(cfg: DictConfig | dict) -> str:
 
 
 def identity_differences(started: DictConfig | dict, now: DictConfig | dict) -> list[str]:
-    """``key=<started> (now <now>)`` for every key in which two configs' identities differ."""
+    """``key=<started> (now <now>)`` for every key in which two configs' identities differ.
+
+    A key one config lacks and the other holds as null is no difference: a setting added to
+    the schema later (such as the Gymnasium world's env.id) is null where it is not used, so a
+    run started before it existed continues."""
     a, b = identity_of(started), identity_of(now)
-    missing = object()
     return [
         f"{k}={a.get(k, '<absent>')!r} (now {b.get(k, '<absent>')!r})"
         for k in sorted(set(a) | set(b))
-        if a.get(k, missing) != b.get(k, missing)
+        if a.get(k) != b.get(k)  # absent and null read alike
     ]
 
 

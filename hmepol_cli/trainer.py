@@ -190,6 +190,7 @@ class Trainer:
                     policy=self.cfg.policy.name,
                     seed=int(member.cfg.seed),
                     wind=getattr(self.world, "wind", None),  # worlds with a wind (corridor)
+                    env_id=getattr(self.world, "env_id", None),  # a Gymnasium world's id
                     epochs=int(self.cfg.epochs),
                     epochs_done=int(member.directory.info().get("epochs_done", 0)),
                     config_names=list(self.world.configuration_names),
@@ -205,6 +206,7 @@ class Trainer:
     def close(self) -> None:
         for member in self.members:
             member.directory.close()
+        self.world.close()  # a Gymnasium world's environments and worker processes
 
     # ------------------------------------------------------------------ Algorithm 3.1
     def train(self, resume: bool = False) -> list[Path]:
@@ -369,7 +371,10 @@ class Trainer:
         """Neighbours, entropies and the update of the members of a rollout."""
         a, e = self.cfg.algo, self.cfg.estimator
         n = len(members)
-        particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), a.batch_size)
+        # The entropy is on the world's chosen features of the states (a Gymnasium world's
+        # env.features; the whole position in the 2-D worlds).
+        features = self.world.entropy_features(rollout.particles)
+        particles = estimators.particles_by_batch(features.flatten(0, 1), a.batch_size)
         neighbours = estimators.nearest_neighbours(particles, e.k, e.neighbours)  # (S' M, P, k)
         entropies = estimators.knn_entropy(neighbours, e.eps).view(n, -1)  # (S', M)
         t2 = time.perf_counter()
@@ -432,11 +437,12 @@ class Trainer:
             actions = rollout.actions.index_select(0, rows)
             histories = rollout.histories.index_select(0, rows)
             who = members.index_select(0, rows)
+            alive = None if rollout.alive is None else rollout.alive.index_select(0, rows)
             target = population.log_prob(who, inputs, actions, histories, self.bptt)
             behaviour = target.detach() if behaviour is None else behaviour.index_select(0, rows)
             nb = _select_batches(neighbours, rows, m_batches)
             weights = estimators.importance_weights(
-                (target - behaviour).flatten(0, 1), a.batch_size
+                _live(target - behaviour, alive).flatten(0, 1), a.batch_size
             )
             entropies = estimators.iw_entropy(weights, nb, eps).view(len(rows), -1)
             if self.exact_kl:
@@ -446,7 +452,7 @@ class Trainer:
                     exact = population.log_prob(who, inputs, actions, histories, None)
                     sampling = rollout.log_probs.index_select(0, rows)
                     exact_w = estimators.importance_weights(
-                        (exact - sampling).flatten(0, 1), a.batch_size
+                        _live(exact - sampling, alive).flatten(0, 1), a.batch_size
                     )
                     kl = estimators.kl_divergence(exact_w, nb).view(len(rows), -1).mean(-1)
             else:
@@ -634,6 +640,15 @@ def _broken_stats(names: list[str], configurations: np.ndarray) -> EpochStats:
         action_max=math.nan,
         broken=names,
     )
+
+
+def _live(log_ratios: torch.Tensor, alive: torch.Tensor | None) -> torch.Tensor:
+    """Log-ratios of the actions that moved the state: an action drawn after the environment
+    ended its episode (Gymnasium worlds) changes no particle, so it counts in no weight.
+    (S', N, T), alive (S', N, T) bool or None (every step counts)."""
+    if alive is None:
+        return log_ratios
+    return torch.where(alive, log_ratios, torch.zeros_like(log_ratios))
 
 
 def _amax_per_member(values: torch.Tensor) -> torch.Tensor:

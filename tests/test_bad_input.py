@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from hmepol_cli.cli import main
+from tests.gym_toy import WALK_ID
 
 TRAIN = [
     (["env=nowhere"], "nowhere"),
@@ -39,6 +40,17 @@ TRAIN = [
     (["policy.init_log_std=nan"], "policy.init_log_std=nan"),
     (["alarms.stall_epochs=0"], "alarms.stall_epochs=0"),
     (["algo.trust_region=loose"], "algo.trust_region='loose'"),
+    # Gymnasium worlds: the id, the indices, the class of configurations
+    (["env=gym"], "env.id"),
+    (["env=gym", "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered"),
+    (["env=gym", "env.id=MountainCarContinuous-v1"], "MountainCarContinuous-v0"),  # a hint
+    (["env=mountaincar", "env.features=[0,5]"], "env.features=[0, 5]"),
+    (["env=mountaincar", "env.features=[1,1]"], "env.features=[1, 1]"),
+    (["env=mountaincar", "env.projection=[0]"], "env.projection=[0]"),
+    (["env=mountaincar", "env.workers=-1"], "env.workers=-1"),
+    (["env=mountaincar", "env.probs=[1,2]"], "env.probs=[1.0, 2.0] must hold 1 finite number"),
+    (["env=gym", "env.id=Pendulum-v1", "env.configs=[{gravity:5}]"], "env.configs[0]"),
+    (["env=gym", f"env.id={WALK_ID}", "env.configs=[{},{dim:3}]"], "env.configs[1]"),
 ]
 
 
@@ -107,6 +119,8 @@ FINETUNE = [
     (["wind=-2"], "wind=-2"),
     (["+foo=1"], "'foo'"),
     (["device=tpu"], "device='tpu'"),
+    (["env=mountaincar", "goal=[[0,0]]"], "is fine-tuned on its own reward"),
+    (["env=gym", "env.id=NoSuchEnv-v0"], "NoSuchEnv-v0"),
 ]
 
 
@@ -155,6 +169,7 @@ def test_a_bad_checkpoint_is_refused_in_one_line_and_runs_no_code(tmp_path, caps
 REPORT_AND_SHOW = [
     (["report", "/no/such/folder"], "/no/such/folder"),
     (["show", "env=moon"], "moon"),
+    (["show", "env=gym"], "env='gym' cannot be drawn"),
     (["show", "wind=abc"], "abc"),
     (["show", "wind=-1"], "wind=-1.0"),
     (["show", "wind=inf"], "wind=inf"),

@@ -578,20 +578,34 @@ def test_the_wind_negates_between_configurations_and_config_0_is_clockwise():
 # ---------------------------------------------------------------- Hydra config group
 @pytest.mark.parametrize("path", sorted(CONF_ENV.glob("*.yaml")), ids=lambda p: p.stem)
 def test_env_config_files_name_a_world_and_hold_only_schema_keys(path):
+    """A built-in world's file is named after it; a Gymnasium preset (ant_xy, mountaincar)
+    names the gym world and an id, and builds (MuJoCo presets where MuJoCo is installed)."""
+    from hmepol_cli.config import EnvConfig
+
     cfg = OmegaConf.load(path)
-    assert set(cfg) <= {"name", "wind"}
-    assert cfg.name == path.stem and cfg.name in ENVIRONMENTS
+    assert cfg.name in ENVIRONMENTS
+    if cfg.name != "gym":
+        assert set(cfg) <= {"name", "wind"} and cfg.name == path.stem
+    assert set(cfg) <= set(OmegaConf.structured(EnvConfig))
     if cfg.name == "corridor":
         assert OmegaConf.to_container(cfg)["wind"] == "${wind}"
+    if cfg.name == "gym" and cfg.id is None:
+        assert path.stem == "gym"  # the bare entry: env=gym env.id=...
+        return
+    if cfg.name == "gym" and gym.spec(cfg.id).entry_point.startswith("gymnasium.envs.mujoco"):
+        pytest.importorskip("mujoco")
     merged = OmegaConf.merge({"wind": 0.15}, {"env": cfg})
     world = make_world(merged.env)
-    assert world.name == path.stem
+    assert world.name == cfg.name
     if isinstance(world, CorridorWorld):
         assert world.wind == 0.15
 
 
 def test_env_config_group_covers_every_world():
-    assert {p.stem for p in CONF_ENV.glob("*.yaml")} == set(ENVIRONMENTS)
+    stems = {p.stem for p in CONF_ENV.glob("*.yaml")}
+    assert set(ENVIRONMENTS) <= stems
+    presets = {p.stem for p in CONF_ENV.glob("*.yaml") if p.stem not in ENVIRONMENTS}
+    assert {OmegaConf.load(CONF_ENV / f"{p}.yaml").name for p in presets} == {"gym"}
 
 
 # ---------------------------------------------------------------- Gymnasium API

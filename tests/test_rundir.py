@@ -78,6 +78,26 @@ def test_continuing_a_run_with_another_config_is_refused_naming_the_keys(tmp_pat
     assert len((tmp_path / "run" / COMMANDS).read_text().splitlines()) == 2
 
 
+def test_a_setting_added_later_as_null_is_no_other_config():
+    """A run started before a key existed (env.id, env.features ...) continues with a config
+    that holds it as null; a key that is set, or removed while set, is a difference."""
+    from hmepol_cli.rundir import identity_differences
+
+    old = {"env": {"name": "slope"}, "algo": {"lr": 0.1}}
+    assert (
+        identity_differences(old, {"env": {"name": "slope", "id": None}, "algo": {"lr": 0.1}}) == []
+    )
+    changed = identity_differences(
+        old, {"env": {"name": "slope", "id": "Ant-v5"}, "algo": {"lr": 0.1}}
+    )
+    assert changed == ["env.id='<absent>' (now 'Ant-v5')"]
+    assert identity_differences({"env": {"name": "gym", "id": "Ant-v5"}}, {"env": {"name": "gym"}})
+    # How many processes step a Gymnasium world changes no number: a run continues with another.
+    assert identity_differences({"env": {"workers": 0}}, {"env": {"workers": 4}}) == []
+    configs = {"env": {"configs": [{"g": 5.0}, {"g": 15.0}]}}
+    assert identity_differences(configs, {"env": {"configs": [{"g": 5.0}, {"g": 10.0}]}})
+
+
 def test_run_json_records_provenance_and_the_owner(tmp_path):
     directory = RunDirectory(tmp_path / "run", compose_cfg()).open("cpu")
     info = json.loads((tmp_path / "run" / RUN_INFO).read_text())

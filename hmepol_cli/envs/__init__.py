@@ -4,18 +4,23 @@ from __future__ import annotations
 
 from hmepol_cli.envs.base import Box, NavigationWorld
 from hmepol_cli.envs.corridor import CorridorWorld
+from hmepol_cli.envs.gym_world import GymWorld
 from hmepol_cli.envs.multigrid import MultiGridWorld
 from hmepol_cli.envs.slope import SlopeWorld
 
 # name -> world class; a new world is one module, one entry here and one conf/env/<name>.yaml.
-ENVIRONMENTS: dict[str, type[NavigationWorld]] = {
+# "gym" is any Gymnasium environment (env.id=...); presets such as conf/env/ant_xy.yaml name it.
+ENVIRONMENTS: dict[str, type[NavigationWorld] | type[GymWorld]] = {
     "slope": SlopeWorld,
     "corridor": CorridorWorld,
     "multigrid": MultiGridWorld,
+    "gym": GymWorld,
 }
 
+World = NavigationWorld | GymWorld  # what the trainer, the rollout and the evaluation talk to
 
-def make_world(env_cfg) -> NavigationWorld:
+
+def make_world(env_cfg) -> World:
     """Build the world named by ``env_cfg.name`` (an EnvConfig or DictConfig)."""
     try:
         world = ENVIRONMENTS[env_cfg.name]
@@ -31,4 +36,4 @@ from hmepol_cli.envs.gym_api import register_envs  # noqa: E402
 
 register_envs()
 
-__all__ = ["Box", "ENVIRONMENTS", "NavigationWorld", "make_world"]
+__all__ = ["Box", "ENVIRONMENTS", "GymWorld", "NavigationWorld", "World", "make_world"]

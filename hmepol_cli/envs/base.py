@@ -98,6 +98,28 @@ class NavigationWorld:
         """The world of an ``env`` config group entry (name, and wind for the corridor)."""
         return cls()
 
+    @classmethod
+    def check_config(cls, env_cfg) -> None:
+        """Refuse a bad ``env`` entry before anything is written (the built-in worlds' keys are
+        checked by :func:`hmepol_cli.config.validate`)."""
+
+    def close(self) -> None:
+        """Release what the world holds outside tensors (nothing, for these worlds)."""
+
+    # ------------------------------------------------------------------ states
+    def entropy_features(self, states: torch.Tensor) -> torch.Tensor:
+        """The part of states the entropy is computed on: the whole position. (..., 2)"""
+        return states
+
+    def plane(self, states: torch.Tensor) -> torch.Tensor:
+        """The 2-D coordinates heatmaps draw: the position itself. (..., 2)"""
+        return states
+
+    def state_bounds(self) -> tuple[list[float], list[float]]:
+        """Lower and upper bound of each state index: the arena."""
+        a = self.arena
+        return [a.x0, a.y0], [a.x1, a.y1]
+
     # ------------------------------------------------------------------ how it looks
     def describe(self, config: int) -> str:
         """One line on the force of a configuration (no force: empty)."""

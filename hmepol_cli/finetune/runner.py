@@ -1,5 +1,6 @@
 """Fine-tuning runs (thesis 5.2, Fig. 5.9): TRPO on sparse goal-reaching tasks, from a
-pre-trained policy or from scratch.
+pre-trained policy or from scratch; in a Gymnasium world, on the environment's own reward and
+termination (one task per configuration).
 
 ``finetune(cfg)`` runs one TRPO fine-tuning per (configuration, target): the task fixes the
 configuration (``config``, or every configuration of the world in turn) and a target area
@@ -28,9 +29,9 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from hmepol_cli.config import DEVICES, check_wind, parse_bptt, validate_policy
-from hmepol_cli.envs import ENVIRONMENTS, NavigationWorld, make_world
+from hmepol_cli.envs import ENVIRONMENTS, GymWorld, World, make_world
 from hmepol_cli.errors import ConfigError, UserError
-from hmepol_cli.finetune.task import GoalTask, TargetError, make_tasks
+from hmepol_cli.finetune.task import GoalTask, RewardTask, TargetError, make_tasks
 from hmepol_cli.finetune.trpo import TRPO, TRPOSettings, TRPOStep
 from hmepol_cli.policies import Policy, make_policy
 from hmepol_cli.rollout import Rollout, collect_episodes
@@ -61,8 +62,8 @@ class Plan:
     env: DictConfig  # name, wind
     init_label: str
     algo_init: str
-    world: NavigationWorld
-    tasks: dict[int, list[GoalTask]]  # configuration -> its tasks
+    world: World
+    tasks: dict[int, list[GoalTask] | list[RewardTask]]  # configuration -> its tasks
 
 
 # --------------------------------------------------------------------------- checks
@@ -153,7 +154,7 @@ def initial_policy(
     return policy, env, str(init_path.resolve()), str(algo), bptt
 
 
-def _configurations(cfg: DictConfig, world: NavigationWorld) -> list[int]:
+def _configurations(cfg: DictConfig, world: World) -> list[int]:
     if cfg.config is None:
         return list(range(world.n_configurations))
     values = list(cfg.config) if OmegaConf.is_list(cfg.config) else [cfg.config]
@@ -213,6 +214,15 @@ def check_finetune(cfg: DictConfig) -> Plan:
         raise ConfigError(f"goal_size={cfg.goal_size!r} must be a number > 0 (or null)")
     world = make_world(env).to(device, torch.float32)
     goal = _goal(cfg)
+    if isinstance(world, GymWorld):
+        # A Gymnasium world brings its own task: its reward and termination, per configuration.
+        if goal != "random":
+            raise ConfigError(
+                f"goal={goal!r}: a Gymnasium world ({world.env_id}) is fine-tuned on its own "
+                "reward; leave goal at random (goal, targets and goal_size are for the 2-D worlds)"
+            )
+        tasks = {c: [RewardTask(c, int(cfg.horizon))] for c in _configurations(cfg, world)}
+        return Plan(settings, pretrained, env, init_label, algo_init, world, tasks)
     try:
         tasks = {
             c: make_tasks(
@@ -318,7 +328,7 @@ def _row(
     epoch: int,
     target: int,
     config: int,
-    world: NavigationWorld,
+    world: World,
     rollout: Rollout,
     step: TRPOStep,
     plan: Plan,
@@ -329,7 +339,10 @@ def _row(
         "target": target,
         "config": config,
         "return": float(rollout.returns.mean()),
-        "success_rate": float(rollout.succeeded.float().mean()),
+        # A Gymnasium world's own task has no target to reach (NaN).
+        "success_rate": (
+            math.nan if rollout.success is None else float(rollout.succeeded.float().mean())
+        ),
         "kl": step.kl,
         "init": plan.init_label,
         "algo_init": plan.algo_init,
@@ -350,7 +363,11 @@ def _targets_info(plan: Plan) -> dict:
                 "config": c,
                 "config_name": plan.world.configuration_names[c],
                 "target": k,
-                "box": [t.target.x0, t.target.y0, t.target.x1, t.target.y1],
+                "box": (  # no target area in a Gymnasium world's own task
+                    None
+                    if t.target is None
+                    else [t.target.x0, t.target.y0, t.target.x1, t.target.y1]
+                ),
             }
             for c, ts in plan.tasks.items()
             for k, t in enumerate(ts)

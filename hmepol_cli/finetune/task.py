@@ -1,4 +1,5 @@
-"""The sparse goal-reaching task of fine-tuning (thesis 5.2, Fig. 5.9).
+"""The tasks of fine-tuning: the sparse goal-reaching task of the 2-D worlds (thesis 5.2, Fig.
+5.9), and a Gymnasium world's own reward (:class:`RewardTask`).
 
 A task fixes one configuration of a world and a target area, a square box in free space. The
 reward is 1 on the step the agent enters the box, 0 on every other step, and the episode ends
@@ -45,6 +46,16 @@ class GoalTask:
         b = self.target
         x, y = positions[:, 0], positions[:, 1]
         return (x >= b.x0) & (x <= b.x1) & (y >= b.y0) & (y <= b.y1)
+
+
+@dataclass(frozen=True)
+class RewardTask:
+    """A Gymnasium world's own task in configuration ``config``: the environment's reward and
+    termination, episodes of at most ``horizon`` steps."""
+
+    config: int
+    horizon: int
+    target = None  # no target area: the environment's reward says what to do
 
 
 def default_target_side(world: NavigationWorld) -> float:

@@ -26,9 +26,10 @@ rollout) and log-std log sigma_0,
                      - d/2 (1 + log 2 pi),
 which is the closed form sum[log sigma/sigma_0 + (sigma_0^2 + (mu_0 - mu)^2) / (2 sigma^2) - 1/2].
 
-The value function reads the state (scaled to the arena) and the time left, t / T, never the
-history: the fine-tuning task fixes one configuration, and any function of the state is an
-unbiased baseline; the time input makes the horizon's end a true terminal state.
+The value function reads the state (scaled to the arena, or to a Gymnasium world's bounded
+observation indices) and the time left, t / T, never the history: the fine-tuning task fixes one
+configuration, and any function of the state is an unbiased baseline; the time input makes the
+horizon's end a true terminal state.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from hmepol_cli.envs.base import Box, NavigationWorld
+from hmepol_cli.envs import World
 from hmepol_cli.policies.base import Policy, mlp
 from hmepol_cli.rollout import Rollout
 
@@ -68,21 +69,31 @@ class TRPOSettings:
 
 # --------------------------------------------------------------------------- value, GAE
 class ValueFunction(nn.Module):
-    """V(s_t, t / T): an MLP on the state scaled to [-1, 1] and the elapsed share of the horizon."""
+    """V(s_t, t / T): an MLP on the state scaled to [-1, 1] and the elapsed share of the horizon.
 
-    def __init__(self, arena: Box, horizon: int, hidden: tuple[int, ...] = (64, 64)) -> None:
+    ``low``, ``high``: the bounds of each state index (the arena of a 2-D world, a Gymnasium
+    world's observation space); an unbounded index is left unscaled."""
+
+    def __init__(
+        self,
+        low: list[float],
+        high: list[float],
+        horizon: int,
+        hidden: tuple[int, ...] = (64, 64),
+    ) -> None:
         super().__init__()
         self.horizon = horizon
-        self.net = mlp([3, *hidden, 1])
-        self.register_buffer(
-            "center", torch.tensor([(arena.x0 + arena.x1) / 2, (arena.y0 + arena.y1) / 2])
-        )
-        self.register_buffer(
-            "half_side", torch.tensor([(arena.x1 - arena.x0) / 2, (arena.y1 - arena.y0) / 2])
-        )
+        self.net = mlp([len(low) + 1, *hidden, 1])
+        center, half = [], []
+        for lo, hi in zip(low, high, strict=True):
+            bounded = math.isfinite(lo) and math.isfinite(hi) and hi > lo
+            center.append((lo + hi) / 2 if bounded else 0.0)
+            half.append((hi - lo) / 2 if bounded else 1.0)
+        self.register_buffer("center", torch.tensor(center))
+        self.register_buffer("half_side", torch.tensor(half))
 
     def forward(self, states: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
-        """states (..., 2), steps (...) -> values (...)."""
+        """states (..., d), steps (...) -> values (...)."""
         x = (states - self.center.to(states.dtype)) / self.half_side.to(states.dtype)
         tau = (steps.to(states.dtype) / self.horizon).unsqueeze(-1)
         return self.net(torch.cat((x, tau), dim=-1)).squeeze(-1)
@@ -254,14 +265,15 @@ class TRPO:
     def __init__(
         self,
         policy: Policy,
-        world: NavigationWorld,
+        world: World,
         horizon: int,
         settings: TRPOSettings,
         generator: torch.Generator | None = None,
     ) -> None:
         self.policy, self.settings, self.generator = policy, settings, generator
         device = policy.log_std.device
-        self.value = ValueFunction(world.arena, horizon, settings.value_hidden).to(
+        low, high = world.state_bounds()
+        self.value = ValueFunction(low, high, horizon, settings.value_hidden).to(
             device, world.dtype
         )
         self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=settings.value_lr)
@@ -275,7 +287,7 @@ class TRPO:
         with torch.no_grad():
             v = self.value(rollout.states, steps)  # V(s_t), t = 0..T'
         timeout = steps[:, 1:] >= rollout.horizon  # the step that spends the last of the horizon
-        ends = rollout.success | timeout
+        ends = rollout.ends | timeout  # reached the target, or the environment ended it
         next_values = torch.where(ends, torch.zeros_like(v[:, 1:]), v[:, 1:])
         adv = gae(rollout.rewards, v[:, :-1], next_values, ends, s.gamma, s.gae_lambda)
         return adv, adv + v[:, :-1]

@@ -45,9 +45,15 @@ def save(fig: Figure, path: Path) -> Path:
 
 
 # ------------------------------------------------------------------------------------ the world
+def has_map(world) -> bool:
+    """True for a world drawn as a map (an arena with walls); False for an unknown world or a
+    Gymnasium world, whose pictures show a projection of the observation on two indices."""
+    return world is not None and getattr(world, "arena", None) is not None
+
+
 def world_extent(world, positions: np.ndarray | None = None) -> tuple[float, float, float, float]:
-    """(x0, x1, y0, y1) of the arena, or of the data when the world is unknown."""
-    if world is not None:
+    """(x0, x1, y0, y1) of the arena, or of the data when the world has no map."""
+    if has_map(world):
         a = world.arena
         return a.x0, a.x1, a.y0, a.y1
     if positions is None or positions.size == 0:
@@ -60,18 +66,26 @@ def world_extent(world, positions: np.ndarray | None = None) -> tuple[float, flo
 
 def draw_walls(ax, world, config: int) -> None:
     """The walls of one configuration (the world's own drawing), above the data."""
-    if world is None:
+    if not has_map(world):
         return
     draw_world(ax, world, config, force=False, start=False, zorder=3)
 
 
-def _map_axes(ax, extent: tuple[float, float, float, float], title: str | None = None) -> None:
+def _map_axes(
+    ax, extent: tuple[float, float, float, float], title: str | None = None, is_map: bool = True
+) -> None:
+    """A map keeps its proportions and needs no ticks; a projection of observations (two indices
+    on unrelated scales, such as position and velocity) fills the panel and shows its values."""
     x0, x1, y0, y1 = extent
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
-    ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
+    if is_map:
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    else:
+        ax.set_aspect("auto")
+        ax.tick_params(labelsize=6)
     if title:
         ax.set_title(title, fontsize=9)
 
@@ -148,7 +162,7 @@ def heatmap_grid(
             if c >= n_configurations:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}")
+            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}", has_map(world))
             ax.set_facecolor("white")
             if c in block:
                 image = ax.imshow(
@@ -159,6 +173,7 @@ def heatmap_grid(
                     vmin=vmin,
                     vmax=vmax,
                     interpolation="nearest",
+                    aspect="equal" if has_map(world) else "auto",
                     zorder=2,
                 )
             draw_walls(ax, world, c)
@@ -213,7 +228,7 @@ def trajectory_grid(
             if c >= n_configurations:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}")
+            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}", has_map(world))
             draw_walls(ax, world, c)
             if c in by_config:
                 draw_trajectories(ax, by_config[c], n_trajectories, every)
@@ -241,13 +256,16 @@ def save_run_plots(
     rows = math.ceil(n_configurations / cols)
     some = next(iter(positions_by_config.values()))
     n_traj, steps = some.shape[0], some.shape[1] - 1
-    world_name = getattr(world, "name", "world")
+    world_name = getattr(world, "env_id", None) or getattr(world, "name", "world")
+    projection = getattr(world, "projection", None)  # a Gymnasium world: two observation indices
+    axes = "" if projection is None else f"\nx: observation[{projection[0]}], y: [{projection[1]}]"
 
     fig = new_figure(2.6 * cols + 1.2, 2.6 * rows + 0.6)
     heatmap_grid(fig, world, [("", positions_by_config)], names)
     fig.suptitle(
         f"{world_name}: log probability of state visitation\n"
-        f"{n_traj} trajectories of T={steps} steps per configuration"
+        f"{n_traj} trajectories of T={steps} steps per configuration{axes}",
+        **({} if projection is None else {"fontsize": 9}),
     )
     heatmap = save(fig, out_dir / "heatmap.png")
 
@@ -255,7 +273,7 @@ def save_run_plots(
     trajectory_grid(fig, world, [("", positions_by_config)], names, n_trajectories, every)
     fig.suptitle(
         f"{world_name}: {min(n_trajectories, n_traj)} trajectories per configuration\n"
-        f"a point every {every} steps, lighter = earlier",
+        f"a point every {every} steps, lighter = earlier{axes}",
         fontsize=10,
     )
     trajectories = save(fig, out_dir / "trajectories.png")

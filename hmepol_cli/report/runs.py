@@ -36,6 +36,7 @@ from hmepol_cli.rundir import (
     FINAL_EVAL,
     FINETUNE_CSV,
     RUN_INFO,
+    hashable_value,
     load_positions,
 )
 
@@ -54,6 +55,7 @@ RUN_SPECIFIC_KEYS = {
     "cuda_graphs",
     "matmul_precision",
     "eval.every",
+    "env.workers",  # processes stepping a Gymnasium world: the same numbers with any count
     # The effective wind is read once (run.json) and stored under the synthetic key "wind".
     "wind",
     "env.wind",
@@ -110,6 +112,11 @@ class Run:
 
     @property
     def env(self) -> str:
+        env_id = self.meta.get("env_id") or (
+            self.config.get("env.id") if self.config.get("env.name") == "gym" else None
+        )
+        if env_id:  # a Gymnasium world is named by its id, made safe for file names
+            return re.sub(r"[^A-Za-z0-9._-]+", "-", str(env_id))
         # run.json names the world actually used (a fine-tuning config may leave it to its init).
         return str(self.meta.get("env") or self.config.get("env.name") or "?")
 
@@ -251,13 +258,14 @@ class Group:
 
 # ---------------------------------------------------------------------------------------- loading
 def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
-    """Nested dicts -> {"a.b": leaf}; lists stay leaves (as tuples, so they can be compared)."""
+    """Nested dicts -> {"a.b": leaf}; lists stay leaves (as tuples, so they can be compared and
+    hashed, keyword sets in them as sorted pairs)."""
     out: dict[str, Any] = {}
     if isinstance(node, dict):
         for key, value in node.items():
             out.update(flatten(value, f"{prefix}{key}."))
     elif isinstance(node, list):
-        out[prefix[:-1]] = tuple(node)
+        out[prefix[:-1]] = hashable_value(node)
     else:
         out[prefix[:-1]] = node
     return out
