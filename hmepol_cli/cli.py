@@ -18,6 +18,7 @@ import re
 import secrets
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 # OpenMP threads that spin while waiting slow torch down many-fold on a shared or oversubscribed
@@ -90,6 +91,18 @@ Plugins.instance().register(PopulationLauncher)
 def fail(message: str, code: int = 2) -> None:
     print(f"hmepol: error: {message}", file=sys.stderr)
     raise SystemExit(code)
+
+
+_PACKAGE_DIR = Path(__file__).resolve().parent
+_python_warning_format = warnings.formatwarning
+
+
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:  # noqa: ANN001
+    """Our own warnings (a skipped run, a stale lock taken over) as one line, like our errors;
+    everyone else's keep Python's format, with the file and line they came from."""
+    if Path(filename).resolve().is_relative_to(_PACKAGE_DIR):
+        return f"hmepol: warning: {message}\n"
+    return _python_warning_format(message, category, filename, lineno, line)
 
 
 # --------------------------------------------------------------------------- checking first
@@ -451,6 +464,7 @@ def main(argv: list[str] | None = None) -> None:
         print(USAGE)
         return
     command, rest = argv[0], argv[1:]
+    warnings.formatwarning = _one_line_warning
     try:
         if command == "train":
             if not _asks_for_help(rest):

@@ -11,6 +11,7 @@ import json
 import math
 import re
 import shutil
+import sys
 import warnings
 from pathlib import Path
 
@@ -523,6 +524,27 @@ def test_report_refuses_a_folder_it_did_not_write(tmp_path, capsys):
     with pytest.raises(UserError, match="is not a report manifest"):
         run_report(root, out)
     assert run_json.exists()
+
+
+def test_the_command_prints_a_skipped_run_as_one_line(tmp_path, capsys, monkeypatch):
+    root = tmp_path / "runs"
+    write_run(root, seed=0)
+    unfinished = write_run(root, seed=1, status="running", epochs_done=8, name="unfinished")
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        # Python's own printer, which pytest replaces while it records warnings.
+        monkeypatch.setattr(
+            warnings,
+            "showwarning",
+            lambda message, category, filename, lineno, file=None, line=None: sys.stderr.write(
+                warnings.formatwarning(message, category, filename, lineno, line)
+            ),
+        )
+        main(["report", str(root), "--out", str(tmp_path / "report")])
+    warned = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert warned == [
+        f"hmepol: warning: skipping run {unfinished}: unfinished (status 'running', 4 epochs done)"
+    ]
 
 
 def test_report_refuses_missing_or_empty_root(tmp_path):
