@@ -1,4 +1,4 @@
-"""Copy the small files of finished runs somewhere they can be kept (docs/results/):
+"""Copy the small files of runs somewhere they can be kept (docs/results/):
 
     python -m hmepol_cli.report.export outputs/full docs/results/full
 
@@ -6,7 +6,8 @@ For every run directory under SOURCE (a directory with run.json): config.yaml, r
 epochs.csv and finetune.csv as they are, targets.json, and eval/final.npz with its positions
 stored as float16 (a heatmap bin is 0.04 wide: float16's 1e-3 resolution on [-6, 6] changes no
 figure, and halves the file). Checkpoints, batches.csv and pictures are left out. ``hmepol
-report DEST`` then rebuilds every figure and table from these files alone.
+report DEST`` then rebuilds every figure and table from these files alone. Unfinished runs are
+copied too (a later export brings them up to date); the report lists them as skipped.
 """
 
 from __future__ import annotations
