@@ -1,0 +1,150 @@
+"""Digests of a few tiny epochs of every world x algorithm x policy, and of a fine-tuning run.
+
+A refactoring that must not change any number is checked by running this at the commit before
+and the commit after and comparing the two outputs line by line::
+
+    python -m benchmarks.digests > before.txt    # at the old commit (git worktree)
+    python -m benchmarks.digests > after.txt
+    diff before.txt after.txt
+
+Each line is ``<case> <sha256 of the numbers>``: every column of epochs.csv and batches.csv but
+the wall-clock ones, and the final policy weights, at full precision. Digests are equal only on
+the same machine and torch build (the same seed and config give the same numbers there).
+``extra`` overrides apply to every case (e.g. ``env.edge=mirror``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import sys
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+TIME_COLUMNS = ("seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time")
+TINY = [
+    "algo.trajectories=10",
+    "algo.horizon=40",
+    "algo.batch_size=5",
+    "algo.max_off_iters=5",
+    "algo.lr=1e-3",
+    "algo.kl_threshold=0.5",
+    "estimator.k=5",
+    "policy.hidden=[16,16]",
+    "policy.encoder_hidden=[16,16]",
+    "policy.history_size=6",
+    "eval.trajectories=4",
+    "eval.horizon=20",
+    "progress=false",
+    "epochs=3",
+]
+WORLDS = ("slope", "corridor", "multigrid")
+ALGOS = ("mepol", "alphamepol", "hmepol")
+POLICIES = ("markov", "recursive", "twohead", "gru", "lstm")
+# A large step and a tight region: first steps and later steps are rejected (backtracking).
+STRESS = ["algo.lr=1e-2", "algo.kl_threshold=0.05"]
+
+
+def _compose(overrides: list[str]):
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    import hmepol_cli.cli  # noqa: F401  (schema and resolvers)
+
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    GlobalHydra.instance().clear()
+    return cfg
+
+
+def _numbers(frame: pd.DataFrame) -> bytes:
+    kept = frame.drop(columns=[c for c in TIME_COLUMNS if c in frame.columns])
+    buffer = io.StringIO()
+    kept.to_csv(buffer, index=False, float_format="%.17g")
+    return buffer.getvalue().encode()
+
+
+def train_digest(overrides: list[str], workdir: Path, seeds: tuple[int, ...] = (0,)) -> str:
+    """One run, or a population of ``seeds`` (its members' files in seed order)."""
+    from hmepol_cli.trainer import Trainer
+
+    cfgs = [_compose([*TINY, *overrides, f"seed={s}"]) for s in seeds]
+    run_dirs = [workdir / f"seed{s}" for s in seeds]
+    trainer = Trainer(cfgs, run_dirs)
+    trainer.train()
+    digest = hashlib.sha256()
+    for run_dir in run_dirs:
+        for name in ("epochs.csv", "batches.csv"):
+            digest.update(_numbers(pd.read_csv(run_dir / name)))
+    for name, value in sorted(trainer.population.params.items()):
+        digest.update(name.encode())
+        digest.update(value.detach().double().cpu().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def finetune_digest(init: Path | None, workdir: Path, extra: list[str]) -> str:
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    from hmepol_cli.finetune import finetune
+
+    overrides = [
+        f"init={init if init is not None else 'none'}",
+        "epochs=3",
+        "episodes=4",
+        "horizon=40",
+        "targets=1",
+        "config=0",
+        "fisher_fraction=0.5",
+        "progress=false",
+        f"output_dir={workdir / 'finetune'}",
+        *([] if init is not None else ["policy.hidden=[16,16]", *extra]),
+    ]
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
+        cfg = compose(config_name="finetune", overrides=overrides)
+    GlobalHydra.instance().clear()
+    out = finetune(cfg)
+    rows = pd.read_csv(out / "finetune.csv")
+    return hashlib.sha256(_numbers(rows.drop(columns=["init"]))).hexdigest()[:16]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("extra", nargs="*", help="overrides applied to every training case")
+    parser.add_argument("--quick", action="store_true", help="one policy per algorithm")
+    ns = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cases = [
+        (world, algo, policy)
+        for world in WORLDS
+        for algo in ALGOS
+        for policy in (POLICIES if not ns.quick else ("markov", "recursive"))
+    ]
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        for i, (world, algo, policy) in enumerate(cases):
+            overrides = [f"env={world}", f"algo={algo}", f"policy={policy}", *ns.extra]
+            digest = train_digest(overrides, root / f"case{i}")
+            print(f"train {world} {algo} {policy} {digest}", flush=True)
+        for world in WORLDS:
+            for algo in ALGOS:
+                for policy in ("markov", "recursive"):
+                    overrides = [f"env={world}", f"algo={algo}", f"policy={policy}", *STRESS]
+                    digest = train_digest([*overrides, *ns.extra], root / f"{world}{algo}{policy}")
+                    print(f"stress {world} {algo} {policy} {digest}", flush=True)
+        overrides = ["env=slope", "algo=hmepol", *STRESS, *ns.extra]
+        digest = train_digest(overrides, root / "population", seeds=(0, 1, 2))
+        print(f"population slope hmepol recursive {digest}", flush=True)
+        init = root / "case0" / "seed0"  # slope, mepol, markov
+        print(f"finetune pretrained {finetune_digest(init, root / 'ft0', ns.extra)}", flush=True)
+        print(f"finetune scratch {finetune_digest(None, root / 'ft1', [])}", flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
