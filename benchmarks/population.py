@@ -36,7 +36,8 @@ import torch  # noqa: E402
 
 from benchmarks.measure import cpu_name, forward_flops  # noqa: E402
 from benchmarks.run import thesis_config  # noqa: E402
-from hmepol_cli.trainer import Trainer, keep_freed_memory  # noqa: E402
+from hmepol_cli.seeding import keep_freed_memory  # noqa: E402
+from hmepol_cli.trainer import Trainer  # noqa: E402
 
 
 def member_configs(setting: str, seeds: list[int], args: argparse.Namespace) -> list:

@@ -43,12 +43,13 @@ from benchmarks.measure import (  # noqa: E402
     matmul_flops,
 )
 from benchmarks.results import OFF_ITERS, Row, markdown, targets  # noqa: E402
-from hmepol_cli import estimators  # noqa: E402
+from hmepol_cli import estimators, mepol  # noqa: E402
 from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
 from hmepol_cli.config import validate  # noqa: E402
 from hmepol_cli.envs import make_world  # noqa: E402
 from hmepol_cli.rollout import collect, draw_configurations  # noqa: E402
-from hmepol_cli.trainer import Trainer, keep_freed_memory  # noqa: E402
+from hmepol_cli.seeding import keep_freed_memory  # noqa: E402
+from hmepol_cli.trainer import Trainer  # noqa: E402
 
 ENVS = ("slope", "corridor")
 ALGOS = ("mepol", "hmepol")
@@ -115,6 +116,15 @@ def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> 
     return row
 
 
+def off_policy_update(trainer: Trainer, rollout, neighbours) -> list:
+    """The off-policy loop of a one-member trainer on given particles and neighbours."""
+    first = torch.tensor([0])
+    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, first, trainer.settings)
+    return mepol.off_policy_loop(
+        trainer.population, trainer.optimizer, surrogate, first, trainer.settings
+    )
+
+
 def dtype_check(args: argparse.Namespace, work: Path) -> dict:
     """float32 against float64 on the same particles and the same initial weights.
 
@@ -149,10 +159,9 @@ def dtype_check(args: argparse.Namespace, work: Path) -> dict:
     )
     shared = dataclasses.replace(n64, radius=n64.radius.float())
     h64, h32 = estimators.knn_entropy(n64), estimators.knn_entropy(n32)
-    first = torch.tensor([0])
-    (u64,) = t64.trust_region_update(first, r64, n64)
-    (u32,) = trainer("float32").trust_region_update(first, r32, n32)
-    (u32_shared,) = trainer("float32").trust_region_update(first, r32, shared)
+    (u64,) = off_policy_update(t64, r64, n64)
+    (u32,) = off_policy_update(trainer("float32"), r32, n32)
+    (u32_shared,) = off_policy_update(trainer("float32"), r32, shared)
     o64, o32, o32_shared = (float(u.entropies.mean()) for u in (u64, u32, u32_shared))
     return {
         "setting": f"slope HMepol, {a.trajectories} trajectories x {a.horizon} steps, "

@@ -45,10 +45,16 @@ class AlgoConfig:
     kl_threshold: float = 15.0  # delta, trust region (Algorithm 3.1)
     lr: float = 1e-5
     max_off_iters: int = 30
-    # When the first off-policy step already leaves the trust region, the learning rate is
-    # divided by lr_backtrack_factor and the step retried, at most lr_backtrack_tries times.
+    # A step that leaves the trust region is undone and retried at a smaller learning rate
+    # (hmepol_cli/mepol.py): "reference" (the public Mepol code: any rejected step is retried
+    # at lr / factor^j, j < tries, then the epoch ends) | "first_step" (only a rejected first
+    # step is retried, at most `tries` halvings, and the epoch goes on at the reduced rate).
+    backtracking: str = "reference"
     lr_backtrack_tries: int = 10
     lr_backtrack_factor: float = 2.0
+    # What a rejected step restores: "parameters" (the reference; Adam's moments keep the
+    # rejected step's gradient) | "parameters_and_adam".
+    backtrack_restore: str = "parameters"
     # Which likelihoods the trust region's KL (eq. 2.8) is computed from: "gradient", those the
     # gradient uses (policy.bptt; the thesis), or "exact", recomputed over the whole history.
     trust_region: str = "gradient"
@@ -163,6 +169,8 @@ def register_configs() -> None:
 DEVICES = ("cpu", "cuda", "auto")
 NEIGHBOURS = ("auto", "kdtree", "torch")
 DTYPES = ("float32", "float64")
+BACKTRACKING = ("reference", "first_step")
+RESTORE = ("parameters", "parameters_and_adam")
 
 
 def _one_of(key: str, value: object, allowed: tuple[str, ...]) -> None:
@@ -206,6 +214,8 @@ def validate(cfg: DictConfig) -> None:
     _one_of("matmul_precision", cfg.matmul_precision, ("highest", "high", "medium"))
     _one_of("vmap", cfg.vmap, ("auto", "on", "off"))
     _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
+    _one_of("algo.backtracking", cfg.algo.backtracking, BACKTRACKING)
+    _one_of("algo.backtrack_restore", cfg.algo.backtrack_restore, RESTORE)
     _one_of("estimator.neighbours", cfg.estimator.neighbours, NEIGHBOURS)
     if not 0 < cfg.algo.alpha <= 1:  # also refuses nan
         raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")

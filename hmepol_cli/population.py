@@ -228,19 +228,32 @@ class PopulationAdam:
 
 
 class Snapshot:
-    """Parameters, Adam state and gradients of every member, to return rejected members to."""
+    """Parameters and gradients of every member (and, ``with_optimizer``, its Adam state), to
+    return rejected members to."""
 
     def __init__(
         self,
         population: PolicyPopulation,
         optimizer: PopulationAdam,
         grads: dict[str, torch.Tensor],
+        with_optimizer: bool = True,
     ) -> None:
+        self.with_optimizer = with_optimizer
         self.tensors = [
             {k: v.detach().clone() for k, v in live.items()}
-            for live in _live(population, optimizer, grads)
+            for live in self._live(population, optimizer, grads)
         ]
         self.steps = optimizer.steps.clone()
+
+    def _live(
+        self,
+        population: PolicyPopulation,
+        optimizer: PopulationAdam,
+        grads: dict[str, torch.Tensor],
+    ) -> list[dict[str, torch.Tensor]]:
+        """The tensors a snapshot keeps: weights, the last gradients, Adam's two moments."""
+        kept = [population.params, grads]
+        return [*kept, optimizer.exp_avg, optimizer.exp_avg_sq] if self.with_optimizer else kept
 
     @torch.no_grad()
     def take(
@@ -251,9 +264,10 @@ class Snapshot:
         mask: torch.Tensor,
     ) -> None:
         """Record the current state of the members where ``mask`` is True."""
-        for kept, live in zip(self.tensors, _live(population, optimizer, grads), strict=True):
+        for kept, live in zip(self.tensors, self._live(population, optimizer, grads), strict=True):
             _where_into(kept, mask, live)
-        self.steps = torch.where(mask, optimizer.steps, self.steps)
+        if self.with_optimizer:
+            self.steps = torch.where(mask, optimizer.steps, self.steps)
 
     @torch.no_grad()
     def restore(
@@ -264,16 +278,10 @@ class Snapshot:
         mask: torch.Tensor,
     ) -> None:
         """Return the members where ``mask`` is True to the recorded state."""
-        for kept, live in zip(self.tensors, _live(population, optimizer, grads), strict=True):
+        for kept, live in zip(self.tensors, self._live(population, optimizer, grads), strict=True):
             _where_into(live, mask, kept)
-        optimizer.steps = torch.where(mask, self.steps, optimizer.steps)
-
-
-def _live(
-    population: PolicyPopulation, optimizer: PopulationAdam, grads: dict[str, torch.Tensor]
-) -> list[dict[str, torch.Tensor]]:
-    """The tensors a snapshot keeps: weights, Adam's two moments, the last gradients."""
-    return [population.params, optimizer.exp_avg, optimizer.exp_avg_sq, grads]
+        if self.with_optimizer:
+            optimizer.steps = torch.where(mask, self.steps, optimizer.steps)
 
 
 def _where_into(

@@ -1,27 +1,21 @@
-"""The trust-region, off-policy loop of Mepol, alpha-Mepol and HMepol (thesis Algorithm 3.1, 4.2.3).
+"""Training runs: a population of members (one run = a population of one) through the epochs of
+Algorithm 3.1 (:mod:`hmepol_cli.mepol`), with their run directories, checkpoints, CSV rows,
+alarms, progress and evaluations.
 
-Per epoch: draw N trajectories in mini-batches of B (one configuration each), search neighbours
-once, then repeat gradient ascent on the objective over the importance-weighted mini-batch
-entropies (eq. 2.7) while the kNN estimate of the KL (eq. 2.8) between the sampling policy and
-the updated one stays within delta, at most ``max_off_iters`` times. When the very first step
-already leaves the trust region the learning rate is divided by ``lr_backtrack_factor`` and the
-step retried, as Mepol does; a later step that leaves it is undone and ends the epoch.
-
-The trainer runs a *population*: runs that differ only in their seed, as one batched program
+Members are runs that differ only in their seed, trained as one batched program
 (:mod:`hmepol_cli.population`). Every member has its own run directory, random stream, Adam
 state, learning-rate backtracking and trust region; a member whose off-policy loop has stopped
-stays where it stopped while the others go on. A single run is a population of one.
+stays where it stopped while the others go on, and a member whose numbers stop being finite
+stops there, recorded as failed, while the others go on.
 """
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import logging
 import math
 import time
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,15 +24,13 @@ import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from hmepol_cli import estimators
-from hmepol_cli.config import parse_bptt
+from hmepol_cli import mepol
 from hmepol_cli.envs import make_world
 from hmepol_cli.errors import RunDirError
 from hmepol_cli.evaluation import evaluate_and_save
-from hmepol_cli.objectives import objective
+from hmepol_cli.mepol import EpochStats, OffPolicySettings
 from hmepol_cli.policies import make_policy
-from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
-from hmepol_cli.rollout import Rollout, collect, draw_configurations
+from hmepol_cli.population import PolicyPopulation, PopulationAdam
 from hmepol_cli.rundir import (
     CHECKPOINT,
     EVAL_DIR,
@@ -48,36 +40,15 @@ from hmepol_cli.rundir import (
     load_checkpoint,
     save_checkpoint,
 )
-from hmepol_cli.seeding import DTYPES, get_device, make_generator, set_random_seed
+from hmepol_cli.seeding import (
+    DTYPES,
+    get_device,
+    keep_freed_memory,
+    make_generator,
+    set_random_seed,
+)
 
 log = logging.getLogger("hmepol")
-
-
-@dataclass
-class UpdateResult:
-    """One member's off-policy loop in one epoch."""
-
-    entropies: np.ndarray  # (M,) IW entropies of the accepted policy
-    kl: float  # KL of the accepted policy (the one the trust region judged by)
-    off_iters: int
-    backtracks: int
-    lr: float
-
-
-@dataclass
-class EpochStats:
-    """One member's epoch."""
-
-    entropies: np.ndarray  # (M,) on-policy kNN entropy of each mini-batch (eq. 2.6)
-    batch_configurations: np.ndarray  # (M,) configuration of each mini-batch
-    objective: float
-    update: UpdateResult
-    history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
-    action_max: float = 0.0  # largest |a_t| drawn (before clipping): diverging means show here
-    floor_share: float = 0.0  # share of particles whose ball volume hit the estimator's floor
-    diverged: bool = False  # |h'| or |a| past the alarm bounds
-    seconds: dict[str, float] = field(default_factory=dict)
-    broken: list[str] = field(default_factory=list)  # non-finite in the rollout: the member stops
 
 
 @dataclass
@@ -124,11 +95,10 @@ class Trainer:
             Member(c, Path(d), make_generator(self.device, c.seed), RunDirectory(Path(d), c))
             for c, d in zip(cfgs, run_dirs, strict=True)
         ]
-        self.bptt = parse_bptt(cfg.policy.bptt)
+        self.settings = OffPolicySettings.from_config(cfg, self.population.history_size)
         # Captured rollouts (CUDA graphs), one per shape: on a GPU the step loop's ~100 small
         # kernels a step cost more in launches than in work.
         self.graphs: dict | None = {} if cfg.cuda_graphs and self.device.type == "cuda" else None
-        self.exact_kl = cfg.algo.trust_region == "exact" and self.population.history_size > 0
 
     @property
     def size(self) -> int:
@@ -291,10 +261,13 @@ class Trainer:
             member.directory.fail(member.failure, epoch=epoch, last=member.log.last_finite)
             log.error("%s: %s", member.run_dir, member.failure)
             return f"seed {member.cfg.seed} failed"
-        member.log.append(*_epoch_rows(epoch, stats, self.world.n_configurations))
+        diverged = (
+            stats.history_max > alarms.history_bound or stats.action_max > alarms.action_bound
+        )
+        member.log.append(*_epoch_rows(epoch, stats, diverged, self.world.n_configurations))
         self.save(s, epoch + 1)
         member.directory.update(epochs_done=epoch + 1)
-        if stats.diverged:
+        if diverged:
             self._warn_divergence(s, epoch, stats)
         member.stalled_for = member.stalled_for + 1 if stats.update.off_iters == 0 else 0
         if member.stalled_for >= alarms.stall_epochs:
@@ -307,7 +280,7 @@ class Trainer:
                 self.cfg.algo.lr_backtrack_tries,
             )
             return f"seed {member.cfg.seed} stalled"
-        return "diverging" if stats.diverged else None
+        return "diverging" if diverged else None
 
     def _non_finite(self, s: int, stats: EpochStats) -> list[str]:
         """The quantities of member s's epoch that are not finite, by name."""
@@ -323,212 +296,14 @@ class Trainer:
         return [name for name, ok in checks.items() if not ok]
 
     def epoch(self, due: list[int] | None = None) -> list[EpochStats]:
-        """One epoch of the members ``due`` (default: all). -> their stats, in that order.
-
-        A member whose rollout holds a non-finite position, action or history stops here:
-        its stats name what broke (``broken``) and it takes no update."""
-        a = self.cfg.algo
+        """One epoch of Algorithm 3.1 (:func:`hmepol_cli.mepol.epoch`) for the members ``due``
+        (default: all). -> their stats, in that order."""
         due = list(range(self.size)) if due is None else due
-        members = torch.tensor(due, device=self.device)
         generators = [self.members[s].generator for s in due]
-        t0 = time.perf_counter()
-        configurations = torch.stack(
-            [draw_configurations(self.world, a.trajectories, a.batch_size, g) for g in generators]
-        )  # (S', N)
-        selection = None if len(due) == self.size else members
-        rollout = collect(
-            self.world,
-            self.population,
-            selection,
-            configurations,
-            a.horizon,
-            generators,
+        return mepol.epoch(
+            self.world, self.population, self.optimizer, self.settings, due, generators,
             graphs=self.graphs,
-        )
-        configs_host = configurations[:, :: a.batch_size].cpu().numpy()
-        broken = _broken_rows(rollout)
-        if broken:
-            healthy = [i for i in range(len(due)) if i not in broken]
-            rows = torch.tensor(healthy, dtype=torch.long, device=self.device)
-            rollout = _rollout_rows(rollout, rows)
-            members = members.index_select(0, rows)
-        t1 = time.perf_counter()
-        stats = self._epoch_of(rollout, members, t0, t1) if len(members) else []
-        by_row = iter(stats)
-        out = []
-        for i in range(len(due)):
-            if i in broken:
-                out.append(_broken_stats(broken[i], configs_host[i]))
-            else:
-                stat = next(by_row)
-                stat.batch_configurations = configs_host[i]
-                out.append(stat)
-        return out
-
-    def _epoch_of(
-        self, rollout: Rollout, members: torch.Tensor, t0: float, t1: float
-    ) -> list[EpochStats]:
-        """Neighbours, entropies and the update of the members of a rollout."""
-        a, e = self.cfg.algo, self.cfg.estimator
-        n = len(members)
-        # The entropy is on the world's chosen features of the states (a Gymnasium world's
-        # env.features; the whole position in the 2-D worlds).
-        features = self.world.entropy_features(rollout.particles)
-        particles = estimators.particles_by_batch(features.flatten(0, 1), a.batch_size)
-        neighbours = estimators.nearest_neighbours(particles, e.k, e.neighbours)  # (S' M, P, k)
-        entropies = estimators.knn_entropy(neighbours, e.eps).view(n, -1)  # (S', M)
-        t2 = time.perf_counter()
-        updates = self.trust_region_update(members, rollout, neighbours)
-        t3 = time.perf_counter()
-        seconds = {"collect": t1 - t0, "neighbours": t2 - t1, "update": t3 - t2, "epoch": t3 - t0}
-        # One transfer for every per-member statistic.
-        alarms = self.cfg.alarms
-        history_max = _amax_per_member(rollout.histories)
-        action_max = _amax_per_member(rollout.actions)
-        floor = estimators.floor_share(neighbours, e.eps, per_batch=True).view(n, -1)
-        objectives = objective(entropies, a.objective, a.alpha)
-        host = torch.stack(
-            [
-                history_max.double(),
-                action_max.double(),
-                floor.mean(-1).double(),
-                objectives.double(),
-            ]
-        ).cpu()
-        entropies_host = entropies.double().cpu().numpy()
-        stats = []
-        for i in range(n):
-            h_max, a_max, floor_i, objective_i = host[:, i].tolist()
-            stats.append(
-                EpochStats(
-                    entropies=entropies_host[i],
-                    batch_configurations=np.zeros(0),
-                    objective=objective_i,
-                    update=updates[i],
-                    history_max=h_max,
-                    action_max=a_max,
-                    floor_share=floor_i,
-                    diverged=h_max > alarms.history_bound or a_max > alarms.action_bound,
-                    seconds=seconds,
-                )
-            )
-        return stats
-
-    def trust_region_update(
-        self, members: torch.Tensor, rollout: Rollout, neighbours: estimators.Neighbours
-    ) -> list[UpdateResult]:
-        """The off-policy loop of every member in ``members`` (S',), as one batched program.
-
-        Each member keeps its own learning rate, backtracks and stopping point; gradients are
-        those of each member's own objective (the members' objectives share no parameters).
-        """
-        a, eps = self.cfg.algo, self.cfg.estimator.eps
-        population, optimizer = self.population, self.optimizer
-        params = population.params
-        n_sel = len(members)
-        m_batches = neighbours.radius.shape[0] // n_sel
-        row_of = {int(s): i for i, s in enumerate(members.tolist())}  # member -> row of rollout
-
-        def estimate(rows: torch.Tensor, behaviour: torch.Tensor | None = None):
-            """The objective of the members in rollout rows ``rows``.
-
-            -> (IW entropies (R, M), KL (R,), objective (R,), likelihoods (R, N, T))."""
-            inputs = rollout.inputs.index_select(0, rows)
-            actions = rollout.actions.index_select(0, rows)
-            histories = rollout.histories.index_select(0, rows)
-            who = members.index_select(0, rows)
-            alive = None if rollout.alive is None else rollout.alive.index_select(0, rows)
-            target = population.log_prob(who, inputs, actions, histories, self.bptt)
-            behaviour = target.detach() if behaviour is None else behaviour.index_select(0, rows)
-            nb = _select_batches(neighbours, rows, m_batches)
-            weights = estimators.importance_weights(
-                _live(target - behaviour, alive).flatten(0, 1), a.batch_size
-            )
-            entropies = estimators.iw_entropy(weights, nb, eps).view(len(rows), -1)
-            if self.exact_kl:
-                # The guard the one-step likelihoods lack: the KL of the same step computed from
-                # likelihoods over the whole history, against the exact sampling likelihoods.
-                with torch.no_grad():
-                    exact = population.log_prob(who, inputs, actions, histories, None)
-                    sampling = rollout.log_probs.index_select(0, rows)
-                    exact_w = estimators.importance_weights(
-                        _live(exact - sampling, alive).flatten(0, 1), a.batch_size
-                    )
-                    kl = estimators.kl_divergence(exact_w, nb).view(len(rows), -1).mean(-1)
-            else:
-                kl = estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)
-            return entropies, kl, objective(entropies, a.objective, a.alpha), target.detach()
-
-        def gradients(value: torch.Tensor) -> dict[str, torch.Tensor]:
-            """Gradient of -objective of each member (they share no parameter: one backward)."""
-            grads = torch.autograd.grad(-value.sum(), list(params.values()), allow_unused=True)
-            return {
-                k: torch.zeros_like(v) if g is None else g
-                for (k, v), g in zip(params.items(), grads, strict=True)
-            }
-
-        size = population.size
-        in_epoch = torch.zeros(size, dtype=torch.bool, device=self.device)
-        in_epoch[members] = True
-        lr = torch.full((size,), float(a.lr), dtype=torch.float64, device=self.device)
-        off_iters, backtracks = [0] * size, [0] * size
-        all_rows = torch.arange(n_sel, device=self.device)
-        entropies, kl, value, behaviour = estimate(all_rows)
-        grads = gradients(value)
-        result_entropies = entropies.detach().double().cpu().numpy()
-        result_kl = [0.0] * n_sel
-        snapshot = Snapshot(population, optimizer, grads)
-        active = in_epoch & (a.max_off_iters > 0)
-        while bool(active.any()):
-            optimizer.step(grads, lr, active)
-            stepped = active.nonzero()[:, 0]
-            rows = torch.tensor([row_of[int(s)] for s in stepped.tolist()], device=self.device)
-            entropies, kl, value, _ = estimate(rows, behaviour)
-            new_grads = gradients(value)
-            stepped_mask = torch.zeros(size, dtype=torch.bool, device=self.device)
-            stepped_mask[stepped] = True
-            grads = {
-                k: torch.where(stepped_mask.view((-1,) + (1,) * (g.dim() - 1)), new_grads[k], g)
-                for k, g in grads.items()
-            }
-            in_region = (kl <= a.kl_threshold) & torch.isfinite(value)
-            # One host sync per iteration: on a GPU the loop waits for the device only here.
-            flags, kl_values = torch.stack((in_region.to(kl.dtype), kl.detach())).tolist()
-            accepted = torch.zeros(size, dtype=torch.bool, device=self.device)
-            rejected = torch.zeros(size, dtype=torch.bool, device=self.device)
-            accepted_rows = []
-            for i, s in enumerate(stepped.tolist()):
-                if flags[i]:
-                    accepted[s] = True
-                    off_iters[s] += 1
-                    result_kl[row_of[s]] = kl_values[i]
-                    accepted_rows.append((i, row_of[s]))
-                    if off_iters[s] >= a.max_off_iters:
-                        active[s] = False
-                    continue
-                rejected[s] = True
-                if off_iters[s] > 0 or backtracks[s] >= a.lr_backtrack_tries:
-                    active[s] = False
-                else:  # the first step overshot: backtrack on the learning rate
-                    lr[s] /= a.lr_backtrack_factor
-                    backtracks[s] += 1
-            if accepted_rows:
-                kept = entropies.detach().double().cpu().numpy()
-                for i, row in accepted_rows:
-                    result_entropies[row] = kept[i]
-            snapshot.take(population, optimizer, grads, accepted)
-            snapshot.restore(population, optimizer, grads, rejected)
-        lr_host = lr.tolist()
-        return [
-            UpdateResult(
-                entropies=result_entropies[row_of[s]],
-                kl=result_kl[row_of[s]],
-                off_iters=off_iters[s],
-                backtracks=backtracks[s],
-                lr=lr_host[s],
-            )
-            for s in members.tolist()
-        ]
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ evaluation
     def save_evaluation(self, name: str) -> list[Path]:
@@ -565,7 +340,9 @@ class Trainer:
         )
 
 
-def _epoch_rows(epoch: int, stats: EpochStats, n_configurations: int) -> tuple[dict, pd.DataFrame]:
+def _epoch_rows(
+    epoch: int, stats: EpochStats, diverged: bool, n_configurations: int
+) -> tuple[dict, pd.DataFrame]:
     """One member's epoch as its epochs.csv row and batches.csv rows."""
     u = stats.update
     row = {"epoch": epoch, "entropy": float(stats.entropies.mean()), "objective": stats.objective}
@@ -580,7 +357,7 @@ def _epoch_rows(epoch: int, stats: EpochStats, n_configurations: int) -> tuple[d
         lr=u.lr,
         history_max=stats.history_max,
         action_max=stats.action_max,
-        diverged=stats.diverged,
+        diverged=diverged,
         floor_share=stats.floor_share,
         seconds=stats.seconds["epoch"],
         collect_seconds=stats.seconds["collect"],
@@ -597,95 +374,3 @@ def _epoch_rows(epoch: int, stats: EpochStats, n_configurations: int) -> tuple[d
         }
     )
     return row, batches
-
-
-def _broken_rows(rollout: Rollout) -> dict[int, list[str]]:
-    """Rows (members) of a rollout holding non-finite positions, actions or histories, with
-    their names. One transfer."""
-    checks = {"positions": rollout.states, "actions": rollout.actions, "history": rollout.histories}
-    finite = torch.stack(
-        [
-            torch.isfinite(v).flatten(1).all(dim=1)
-            if v.numel()
-            else torch.ones(v.shape[0], dtype=torch.bool, device=v.device)
-            for v in checks.values()
-        ]
-    ).cpu()  # (3, S')
-    names = list(checks)
-    return {
-        i: [names[j] for j in range(len(names)) if not finite[j, i]]
-        for i in range(finite.shape[1])
-        if not finite[:, i].all()
-    }
-
-
-def _rollout_rows(rollout: Rollout, rows: torch.Tensor) -> Rollout:
-    """The members of a rollout in ``rows``."""
-    return Rollout(
-        **{
-            k: v.index_select(0, rows) if isinstance(v, torch.Tensor) else v
-            for k, v in vars(rollout).items()
-        }
-    )
-
-
-def _broken_stats(names: list[str], configurations: np.ndarray) -> EpochStats:
-    nan = np.full(len(configurations), math.nan)
-    return EpochStats(
-        entropies=nan,
-        batch_configurations=configurations,
-        objective=math.nan,
-        update=UpdateResult(nan, math.nan, 0, 0, math.nan),
-        history_max=math.nan,
-        action_max=math.nan,
-        broken=names,
-    )
-
-
-def _live(log_ratios: torch.Tensor, alive: torch.Tensor | None) -> torch.Tensor:
-    """Log-ratios of the actions that moved the state: an action drawn after the environment
-    ended its episode (Gymnasium worlds) changes no particle, so it counts in no weight.
-    (S', N, T), alive (S', N, T) bool or None (every step counts)."""
-    if alive is None:
-        return log_ratios
-    return torch.where(alive, log_ratios, torch.zeros_like(log_ratios))
-
-
-def _amax_per_member(values: torch.Tensor) -> torch.Tensor:
-    """Largest |value| of each member's slice. (S', ...) -> (S',)"""
-    if values.numel() == 0:
-        return torch.zeros(values.shape[0], device=values.device, dtype=values.dtype)
-    return values.abs().flatten(1).amax(dim=1)
-
-
-def _select_batches(
-    neighbours: estimators.Neighbours, rows: torch.Tensor, m_batches: int
-) -> estimators.Neighbours:
-    """The mini-batches of some members: neighbours of (S' M) mini-batches -> (R M)."""
-    if len(rows) * m_batches == neighbours.radius.shape[0]:
-        return neighbours
-    idx = neighbours.indices.view(-1, m_batches, *neighbours.indices.shape[1:])
-    radius = neighbours.radius.view(-1, m_batches, neighbours.radius.shape[-1])
-    return estimators.Neighbours(
-        indices=idx.index_select(0, rows).flatten(0, 1),
-        radius=radius.index_select(0, rows).flatten(0, 1),
-        dim=neighbours.dim,
-    )
-
-
-def keep_freed_memory() -> None:
-    """Let glibc's malloc keep large freed blocks for reuse instead of handing them back.
-
-    An off-policy iteration allocates and frees activations of ~100 MB (80,000 particles x 300
-    units). By default glibc serves blocks that large with mmap and unmaps them when freed, so
-    every iteration pays the page faults of fresh memory again: an iteration then takes ~1.1-1.5x
-    as long (README, Speed). Raising the mmap and trim thresholds keeps those pages in the heap.
-    Process-wide, idempotent, and a no-op where the C library has no ``mallopt``.
-    """
-    try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
-    except (OSError, AttributeError, TypeError):
-        return
-    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
-    mallopt(m_mmap_threshold, 1 << 30)
-    mallopt(m_trim_threshold, (1 << 31) - 1)

@@ -13,7 +13,7 @@ import torch
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
-from hmepol_cli import estimators
+from hmepol_cli import estimators, mepol
 from hmepol_cli.cli import register_configs  # noqa: F401  (schema and resolvers)
 from hmepol_cli.rollout import collect, draw_configurations
 from hmepol_cli.trainer import Trainer
@@ -111,7 +111,7 @@ def compare_vmap_with_the_member_loop(tmp_path, *overrides: str, grad_rtol: floa
         configurations = torch.stack([draw_configurations(trainer.world, 10, 5, g) for g in gens])
         rollout = collect(trainer.world, trainer.population, None, configurations, 40, gens)
         log_p = trainer.population.log_prob(
-            None, rollout.inputs, rollout.actions, rollout.histories, trainer.bptt
+            None, rollout.inputs, rollout.actions, rollout.histories, trainer.settings.bptt
         )
         grads = torch.autograd.grad(
             log_p.sin().sum(), list(trainer.population.params.values()), allow_unused=True
@@ -178,7 +178,11 @@ def first_step(tmp_path, trust_region: str, kl_threshold: float):
     rollout = collect(trainer.world, trainer.population, None, configurations, 200, [gen])
     particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
     neighbours = estimators.nearest_neighbours(particles, 5)
-    (result,) = trainer.trust_region_update(torch.tensor([0]), rollout, neighbours)
+    members = torch.tensor([0])
+    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
+    (result,) = mepol.off_policy_loop(
+        trainer.population, trainer.optimizer, surrogate, members, trainer.settings
+    )
     return result, trainer, rollout, neighbours
 
 

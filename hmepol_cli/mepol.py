@@ -1,0 +1,456 @@
+r"""Algorithm 3.1 (Mepol), as Mepol, alpha-Mepol and HMepol run it (thesis 3.3.1, 3.4.2, 4.2.3).
+
+    for epoch = 0, 1, 2, ...                                              Trainer
+        draw N trajectories of length T, B per mini-batch, one configuration   epoch()
+        particles: the states visited; k nearest neighbours, searched once
+        theta' <- theta
+        while KL(d_T(theta) || d_T(theta')) <= delta, at most max_off_iters:   off_policy_loop()
+            theta' <- theta' + Adam step of lr on grad objective(theta' | theta)
+        theta <- theta'                 (the last theta' inside the trust region)
+
+The objective is the mean (Mepol, HMepol) or the CVaR_alpha (alpha-Mepol, eq. 3.3) of the
+mini-batches' importance-weighted entropies (eq. 2.7); the KL is eq. 2.8, per mini-batch, averaged
+(:class:`Surrogate`). When a step leaves the trust region the learning rate is backtracked
+(``OffPolicySettings.backtracking``):
+
+- ``reference`` (the public Mepol code's ``use_backtracking``, the default): *any* rejected step,
+  the first or a later one, returns theta' to the last accepted parameters and is retried at
+  lr / factor^j, j = 1 .. tries - 1, until one is accepted or the tries run out; either way the
+  epoch ends there (a run that leaves the region after 12 steps makes one smaller 13th step);
+- ``first_step`` (this project's rule before it followed the reference): only a rejected *first*
+  step is retried, at lr / factor, lr / factor^2, ... (at most ``tries`` times), and the epoch goes
+  on at the reduced rate; a later rejection ends the epoch without a smaller step.
+
+What a rejection restores (``restore``): ``parameters`` (the reference: Adam's moments and step
+count keep the rejected step's gradient) or ``parameters_and_adam`` (the Adam state too).
+
+A *population* (:mod:`hmepol_cli.population`) runs this for S members at once: every member has
+its own learning rate, step count, backtracking and stopping point, and the member masks below
+(``searching``, ``accepted``, ``rejected``; shape (S,)) say which members an operation touches.
+A single run is a population of one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from hmepol_cli import estimators
+from hmepol_cli.config import parse_bptt
+from hmepol_cli.envs import World
+from hmepol_cli.objectives import objective
+from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
+from hmepol_cli.rollout import Rollout, collect, draw_configurations
+
+
+@dataclass(frozen=True)
+class OffPolicySettings:
+    """What one epoch of Algorithm 3.1 needs from the config, read once."""
+
+    trajectories: int  # N
+    horizon: int  # T
+    batch_size: int  # B, trajectories per mini-batch
+    k: int  # neighbours of the estimators
+    neighbours: str  # the neighbour search: auto | kdtree | torch
+    eps: float  # floor of the ball volumes
+    objective: str  # mean | cvar
+    alpha: float  # CVaR level (eq. 3.3)
+    kl_threshold: float  # delta
+    lr: float
+    max_off_iters: int
+    backtracking: str  # reference | first_step
+    backtrack_tries: int
+    backtrack_factor: float
+    restore: str  # parameters | parameters_and_adam
+    exact_kl: bool  # judge steps by the KL of likelihoods over the whole history
+    bptt: int | None  # steps of the recursion the likelihoods recompute (None: all)
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig, history_size: int) -> OffPolicySettings:
+        a, e = cfg.algo, cfg.estimator
+        # Runs started before the reference's backtracking was the default keep their own rule.
+        return cls(
+            trajectories=int(a.trajectories),
+            horizon=int(a.horizon),
+            batch_size=int(a.batch_size),
+            k=int(e.k),
+            neighbours=str(e.neighbours),
+            eps=float(e.eps),
+            objective=str(a.objective),
+            alpha=float(a.alpha),
+            kl_threshold=float(a.kl_threshold),
+            lr=float(a.lr),
+            max_off_iters=int(a.max_off_iters),
+            backtracking=str(a.get("backtracking", "first_step")),
+            backtrack_tries=int(a.lr_backtrack_tries),
+            backtrack_factor=float(a.lr_backtrack_factor),
+            restore=str(a.get("backtrack_restore", "parameters_and_adam")),
+            exact_kl=a.trust_region == "exact" and history_size > 0,
+            bptt=parse_bptt(cfg.policy.bptt),
+        )
+
+
+@dataclass
+class UpdateResult:
+    """One member's off-policy loop in one epoch."""
+
+    entropies: np.ndarray  # (M,) IW entropies of the accepted policy
+    kl: float  # KL of the accepted policy (the one the trust region judged by)
+    off_iters: int  # accepted steps
+    backtracks: int  # learning-rate reductions
+    lr: float  # the learning rate of the last step tried
+
+
+@dataclass
+class EpochStats:
+    """One member's epoch."""
+
+    entropies: np.ndarray  # (M,) on-policy kNN entropy of each mini-batch (eq. 2.6)
+    batch_configurations: np.ndarray  # (M,) configuration of each mini-batch
+    objective: float
+    update: UpdateResult
+    history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
+    action_max: float = 0.0  # largest |a_t| drawn (before clipping): diverging means show here
+    floor_share: float = 0.0  # share of particles whose ball volume hit the estimator's floor
+    seconds: dict[str, float] = field(default_factory=dict)
+    broken: list[str] = field(default_factory=list)  # non-finite in the rollout: the member stops
+
+
+# ------------------------------------------------------------------ one epoch
+def epoch(
+    world: World,
+    population: PolicyPopulation,
+    optimizer: PopulationAdam,
+    settings: OffPolicySettings,
+    members: Sequence[int],
+    generators: Sequence[torch.Generator],
+    graphs: dict | None = None,
+) -> list[EpochStats]:
+    """One epoch of Algorithm 3.1 for the population's ``members`` (member i acting with
+    randomness from ``generators[i]``). -> their stats, in that order.
+
+    A member whose rollout holds a non-finite position, action or history stops before the
+    neighbour search: its stats name what broke (``broken``) and it takes no update."""
+    s = settings
+    t0 = time.perf_counter()
+    rows = torch.tensor(list(members), device=world.device)
+    configurations = torch.stack(
+        [draw_configurations(world, s.trajectories, s.batch_size, g) for g in generators]
+    )  # (S', N): one configuration per mini-batch, repeated over its B trajectories
+    selection = None if len(members) == population.size else rows
+    rollout = collect(world, population, selection, configurations, s.horizon, generators,
+                      graphs=graphs)  # fmt: skip
+    batch_configurations = configurations[:, :: s.batch_size].cpu().numpy()  # (S', M)
+    broken = _broken_rows(rollout)
+    healthy = [i for i in range(len(members)) if i not in broken]
+    if broken:
+        keep = torch.tensor(healthy, dtype=torch.long, device=world.device)
+        rollout, rows = _rollout_rows(rollout, keep), rows.index_select(0, keep)
+    t1 = time.perf_counter()
+    stats = iter(_update(world, population, optimizer, settings, rollout, rows, t0, t1)
+                 if healthy else [])  # fmt: skip
+    out = []
+    for i in range(len(members)):
+        stat = _broken_stats(broken[i], batch_configurations[i]) if i in broken else next(stats)
+        stat.batch_configurations = batch_configurations[i]
+        out.append(stat)
+    return out
+
+
+def _update(
+    world: World,
+    population: PolicyPopulation,
+    optimizer: PopulationAdam,
+    settings: OffPolicySettings,
+    rollout: Rollout,
+    members: torch.Tensor,
+    t0: float,
+    t1: float,
+) -> list[EpochStats]:
+    """Particles, neighbours, entropies and the off-policy loop of the members of a rollout."""
+    s, n = settings, len(members)
+    # The entropy is on the world's chosen features of the states (a Gymnasium world's
+    # env.features; the whole position in the 2-D worlds).
+    features = world.entropy_features(rollout.particles)
+    particles = estimators.particles_by_batch(features.flatten(0, 1), s.batch_size)
+    neighbours = estimators.nearest_neighbours(particles, s.k, s.neighbours)  # (S' M, P, k)
+    entropies = estimators.knn_entropy(neighbours, s.eps).view(n, -1)  # (S', M), eq. 2.6
+    t2 = time.perf_counter()
+    surrogate = Surrogate(population, rollout, neighbours, members, settings)
+    updates = off_policy_loop(population, optimizer, surrogate, members, settings)
+    t3 = time.perf_counter()
+    seconds = {"collect": t1 - t0, "neighbours": t2 - t1, "update": t3 - t2, "epoch": t3 - t0}
+    floor = estimators.floor_share(neighbours, s.eps, per_batch=True).view(n, -1)
+    host = torch.stack(  # one transfer for every per-member statistic
+        [
+            _amax_per_member(rollout.histories).double(),
+            _amax_per_member(rollout.actions).double(),
+            floor.mean(-1).double(),
+            objective(entropies, s.objective, s.alpha).double(),
+        ]
+    ).cpu()
+    entropies_host = entropies.double().cpu().numpy()
+    stats = []
+    for i in range(n):
+        history_max, action_max, floor_i, objective_i = host[:, i].tolist()
+        stats.append(
+            EpochStats(
+                entropies=entropies_host[i],
+                batch_configurations=np.zeros(0),
+                objective=objective_i,
+                update=updates[i],
+                history_max=history_max,
+                action_max=action_max,
+                floor_share=floor_i,
+                seconds=seconds,
+            )
+        )
+    return stats
+
+
+# ------------------------------------------------------------------ the objective and the KL
+class Surrogate:
+    """The objective and the KL of target parameters theta' on one epoch's fixed particles,
+    sampled under theta (eqs. 2.7, 2.8, 3.3), for the members of a rollout.
+
+    Rows of the rollout are members ``members[i]``; calls take member indices."""
+
+    def __init__(
+        self,
+        population: PolicyPopulation,
+        rollout: Rollout,
+        neighbours: estimators.Neighbours,
+        members: torch.Tensor,
+        settings: OffPolicySettings,
+    ) -> None:
+        self.population, self.rollout, self.neighbours = population, rollout, neighbours
+        self.members, self.settings = members, settings
+        self.batches = neighbours.radius.shape[0] // len(members)  # M per member
+        self.row_of = {int(m): i for i, m in enumerate(members.tolist())}
+        self.behaviour: torch.Tensor | None = None  # log pi_theta(a_t | h_t), as theta' computes it
+
+    def rows(self, members: Sequence[int]) -> torch.Tensor:
+        return torch.tensor([self.row_of[int(m)] for m in members], device=self.members.device)
+
+    def __call__(self, rows: torch.Tensor):
+        """At the current parameters, for rollout rows ``rows`` (R,):
+        -> (IW entropies (R, M), KL (R,), objective (R,), likelihoods (R, N, T), detached).
+
+        The first call (theta' = theta) also fixes the behaviour likelihoods: the sampling
+        policy's, computed exactly as theta' computes its own, so the log-ratios start at 0."""
+        s, r = self.settings, self.rollout
+        inputs, actions = r.inputs.index_select(0, rows), r.actions.index_select(0, rows)
+        histories = r.histories.index_select(0, rows)
+        who = self.members.index_select(0, rows)
+        alive = None if r.alive is None else r.alive.index_select(0, rows)
+        target = self.population.log_prob(who, inputs, actions, histories, s.bptt)
+        if self.behaviour is None:
+            self.behaviour = target.detach()
+        behaviour = self.behaviour.index_select(0, rows)
+        nb = _select_batches(self.neighbours, rows, self.batches)
+        weights = estimators.importance_weights(
+            _live(target - behaviour, alive).flatten(0, 1), s.batch_size
+        )
+        entropies = estimators.iw_entropy(weights, nb, s.eps).view(len(rows), -1)  # eq. 2.7
+        if s.exact_kl:
+            kl = self._exact_kl(who, inputs, actions, histories, alive, rows, nb)
+        else:
+            kl = estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)  # eq. 2.8
+        return entropies, kl, objective(entropies, s.objective, s.alpha), target.detach()
+
+    @torch.no_grad()
+    def _exact_kl(self, who, inputs, actions, histories, alive, rows, nb) -> torch.Tensor:
+        """The guard the one-step likelihoods lack: the KL of the same step computed from
+        likelihoods over the whole history, against the exact sampling likelihoods."""
+        s = self.settings
+        exact = self.population.log_prob(who, inputs, actions, histories, None)
+        sampling = self.rollout.log_probs.index_select(0, rows)
+        weights = estimators.importance_weights(
+            _live(exact - sampling, alive).flatten(0, 1), s.batch_size
+        )
+        return estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)
+
+
+# ------------------------------------------------------------------ the off-policy loop
+def off_policy_loop(
+    population: PolicyPopulation,
+    optimizer: PopulationAdam,
+    surrogate: Surrogate,
+    members: torch.Tensor,
+    settings: OffPolicySettings,
+) -> list[UpdateResult]:
+    """The while-loop of Algorithm 3.1 for every member in ``members`` (S',), one batched
+    program. -> one result per member, in that order.
+
+    Gradients are each member's own (the members' objectives share no parameter)."""
+    s, device, size = settings, population.device, population.size
+    params = population.params
+    # theta' = theta: the IW objective equals the on-policy one and the KL is 0.
+    every_row = torch.arange(len(members), device=device)
+    entropies, kl, value, _ = surrogate(every_row)
+    grads = _gradients(value, params)
+    accepted_entropies = entropies.detach().double().cpu().numpy()  # (S', M), per row
+    accepted_kl = [0.0] * len(members)
+    keep_adam = s.restore == "parameters_and_adam"
+    last_accepted = Snapshot(population, optimizer, grads, with_optimizer=keep_adam)
+    lr = torch.full((size,), s.lr, dtype=torch.float64, device=device)
+    off_iters, backtracks = [0] * size, [0] * size
+    searching = torch.zeros(size, dtype=torch.bool, device=device)  # members still stepping
+    searching[members] = s.max_off_iters > 0
+    while bool(searching.any()):
+        optimizer.step(grads, lr, searching)  # theta' <- theta' + Adam step
+        stepped = searching.nonzero()[:, 0].tolist()
+        rows = surrogate.rows(stepped)
+        entropies, kl, value, _ = surrogate(rows)
+        grads = _merge(grads, _gradients(value, params), _mask(stepped, size, device))
+        in_region = (kl <= s.kl_threshold) & torch.isfinite(value)
+        # One host sync per iteration: on a GPU the loop waits for the device only here.
+        flags, kl_values = torch.stack((in_region.to(kl.dtype), kl.detach())).tolist()
+        accepted = torch.zeros(size, dtype=torch.bool, device=device)
+        rejected = torch.zeros(size, dtype=torch.bool, device=device)
+        accepted_now = []
+        for i, m in enumerate(stepped):
+            if flags[i]:
+                accepted[m] = True
+                off_iters[m] += 1
+                accepted_kl[surrogate.row_of[m]] = kl_values[i]
+                accepted_now.append(i)
+                done = off_iters[m] >= s.max_off_iters
+                if s.backtracking == "reference":
+                    done |= backtracks[m] > 0  # at most one step after backtracking
+                searching[m] = not done
+                continue
+            rejected[m] = True
+            if s.backtracking == "reference":
+                retry = backtracks[m] < s.backtrack_tries - 1
+                if retry:
+                    backtracks[m] += 1
+                    lr[m] = s.lr / s.backtrack_factor ** backtracks[m]
+            else:  # first_step: only a rejected first step is retried, at a reduced rate
+                retry = off_iters[m] == 0 and backtracks[m] < s.backtrack_tries
+                if retry:
+                    lr[m] /= s.backtrack_factor
+                    backtracks[m] += 1
+            searching[m] = retry
+        if accepted_now:
+            kept = entropies.detach().double().cpu().numpy()
+            for i in accepted_now:
+                accepted_entropies[surrogate.row_of[stepped[i]]] = kept[i]
+        last_accepted.take(population, optimizer, grads, accepted)
+        last_accepted.restore(population, optimizer, grads, rejected)
+    lr_host = lr.tolist()
+    return [
+        UpdateResult(
+            entropies=accepted_entropies[surrogate.row_of[m]],
+            kl=accepted_kl[surrogate.row_of[m]],
+            off_iters=off_iters[m],
+            backtracks=backtracks[m],
+            lr=lr_host[m],
+        )
+        for m in members.tolist()
+    ]
+
+
+def _gradients(value: torch.Tensor, params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Gradient of -objective of each member (they share no parameter: one backward)."""
+    grads = torch.autograd.grad(-value.sum(), list(params.values()), allow_unused=True)
+    return {
+        k: torch.zeros_like(v) if g is None else g
+        for (k, v), g in zip(params.items(), grads, strict=True)
+    }
+
+
+def _mask(members: Sequence[int], size: int, device: torch.device) -> torch.Tensor:
+    mask = torch.zeros(size, dtype=torch.bool, device=device)
+    mask[list(members)] = True
+    return mask
+
+
+def _merge(
+    old: dict[str, torch.Tensor], new: dict[str, torch.Tensor], mask: torch.Tensor
+) -> dict[str, torch.Tensor]:
+    """new[k] for the members in ``mask`` (S,), old[k] for the others."""
+    return {
+        k: torch.where(mask.view((-1,) + (1,) * (g.dim() - 1)), new[k], g) for k, g in old.items()
+    }
+
+
+# ------------------------------------------------------------------ rollouts of some members
+def _broken_rows(rollout: Rollout) -> dict[int, list[str]]:
+    """Rows (members) of a rollout holding non-finite positions, actions or histories, with
+    their names. One transfer."""
+    checks = {"positions": rollout.states, "actions": rollout.actions, "history": rollout.histories}
+    finite = torch.stack(
+        [
+            torch.isfinite(v).flatten(1).all(dim=1)
+            if v.numel()
+            else torch.ones(v.shape[0], dtype=torch.bool, device=v.device)
+            for v in checks.values()
+        ]
+    ).cpu()  # (3, S')
+    names = list(checks)
+    return {
+        i: [names[j] for j in range(len(names)) if not finite[j, i]]
+        for i in range(finite.shape[1])
+        if not finite[:, i].all()
+    }
+
+
+def _rollout_rows(rollout: Rollout, rows: torch.Tensor) -> Rollout:
+    """The members of a rollout in ``rows``."""
+    return Rollout(
+        **{
+            k: v.index_select(0, rows) if isinstance(v, torch.Tensor) else v
+            for k, v in vars(rollout).items()
+        }
+    )
+
+
+def _broken_stats(names: list[str], configurations: np.ndarray) -> EpochStats:
+    nan = np.full(len(configurations), math.nan)
+    return EpochStats(
+        entropies=nan,
+        batch_configurations=configurations,
+        objective=math.nan,
+        update=UpdateResult(nan, math.nan, 0, 0, math.nan),
+        history_max=math.nan,
+        action_max=math.nan,
+        broken=names,
+    )
+
+
+def _live(log_ratios: torch.Tensor, alive: torch.Tensor | None) -> torch.Tensor:
+    """Log-ratios of the actions that moved the state: an action drawn after the environment
+    ended its episode (Gymnasium worlds) changes no particle, so it counts in no weight.
+    (S', N, T), alive (S', N, T) bool or None (every step counts)."""
+    if alive is None:
+        return log_ratios
+    return torch.where(alive, log_ratios, torch.zeros_like(log_ratios))
+
+
+def _amax_per_member(values: torch.Tensor) -> torch.Tensor:
+    """Largest |value| of each member's slice. (S', ...) -> (S',)"""
+    if values.numel() == 0:
+        return torch.zeros(values.shape[0], device=values.device, dtype=values.dtype)
+    return values.abs().flatten(1).amax(dim=1)
+
+
+def _select_batches(
+    neighbours: estimators.Neighbours, rows: torch.Tensor, m_batches: int
+) -> estimators.Neighbours:
+    """The mini-batches of some members: neighbours of (S' M) mini-batches -> (R M)."""
+    if len(rows) * m_batches == neighbours.radius.shape[0]:
+        return neighbours
+    idx = neighbours.indices.view(-1, m_batches, *neighbours.indices.shape[1:])
+    radius = neighbours.radius.view(-1, m_batches, neighbours.radius.shape[-1])
+    return estimators.Neighbours(
+        indices=idx.index_select(0, rows).flatten(0, 1),
+        radius=radius.index_select(0, rows).flatten(0, 1),
+        dim=neighbours.dim,
+    )

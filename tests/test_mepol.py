@@ -1,0 +1,154 @@
+"""The off-policy loop of Algorithm 3.1 on hand-built surrogates: the backtracking rules step
+by step, what a rejection restores, and members that stop at different points."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from hmepol_cli.mepol import OffPolicySettings, off_policy_loop
+from hmepol_cli.population import PolicyPopulation, PopulationAdam
+
+LR = 0.1
+
+
+def settings(**changes) -> OffPolicySettings:
+    base = OffPolicySettings(
+        trajectories=10, horizon=4, batch_size=5, k=2, neighbours="kdtree", eps=1e-10,
+        objective="mean", alpha=1.0, kl_threshold=0.15, lr=LR, max_off_iters=30,
+        backtracking="reference", backtrack_tries=10, backtrack_factor=2.0,
+        restore="parameters", exact_kl=False, bptt=1,
+    )  # fmt: skip
+    return dataclasses.replace(base, **changes)
+
+
+class Quadratic:
+    """A surrogate whose objective is sum(log_std) and whose KL is |log_std - log_std_0|^2.
+
+    The gradient is constant, so every Adam step moves each of the two log-std entries by the
+    learning rate (m / sqrt(v) = 1): after steps of rates lr_1, lr_2, ... the KL is
+    2 (lr_1 + lr_2 + ...)^2. With lr = 0.1: 0.02 after one full step, 0.08 after two, 0.18
+    after three; a threshold of 0.15 accepts two full steps and rejects the third."""
+
+    def __init__(self, population: PolicyPopulation, scale: torch.Tensor | None = None) -> None:
+        self.population = population
+        self.start = population.params["log_std"].detach().clone()
+        self.scale = torch.ones(population.size, dtype=torch.float64) if scale is None else scale
+        self.row_of = {m: m for m in range(population.size)}
+        self.calls = 0
+
+    def rows(self, members):
+        return torch.tensor(list(members))
+
+    def __call__(self, rows: torch.Tensor):
+        self.calls += 1
+        log_std = self.population.params["log_std"].index_select(0, rows)
+        value = log_std.sum(-1)
+        kl = self.scale[rows] * (log_std - self.start[rows]).pow(2).sum(-1).detach()
+        return value[:, None].detach().repeat(1, 2), kl, value, None
+
+
+def population(size: int = 1) -> tuple[PolicyPopulation, PopulationAdam]:
+    from hmepol_cli.config import PolicyConfig
+    from hmepol_cli.policies import make_policy
+
+    cfg = PolicyConfig(name="markov", hidden=[4])
+    policies = [make_policy(cfg, 2, 2).double() for _ in range(size)]
+    pop = PolicyPopulation(policies)
+    return pop, PopulationAdam(pop.params)
+
+
+def moved(pop: PolicyPopulation, surrogate: Quadratic, s: int = 0) -> float:
+    """How far member s's log-std moved, in units of LR (both entries move alike)."""
+    delta = pop.params["log_std"][s].detach() - surrogate.start[s]
+    assert torch.allclose(delta[0], delta[1])
+    return float(delta[0]) / LR
+
+
+def run(rule: str, threshold: float, **changes):
+    pop, adam = population()
+    surrogate = Quadratic(pop)
+    s = settings(backtracking=rule, kl_threshold=threshold, **changes)
+    (result,) = off_policy_loop(pop, adam, surrogate, torch.tensor([0]), s)
+    return result, moved(pop, surrogate), adam
+
+
+def test_reference_a_rejected_third_step_is_retried_smaller_and_ends_the_epoch():
+    result, distance, adam = run("reference", 0.15)
+    # Steps 1 and 2 accepted (KL 0.08); step 3 (0.18) rejected, undone, retried at lr / 2
+    # (KL 2 x 0.25^2 = 0.125): accepted, and the epoch ends there.
+    assert (result.off_iters, result.backtracks) == (3, 1)
+    assert result.lr == LR / 2
+    assert distance == pytest.approx(2.5, rel=1e-6)
+    assert result.kl == pytest.approx(2 * (2.5 * LR) ** 2, rel=1e-6)
+    # parameters only were restored: Adam counted the rejected step too (4 steps tried).
+    assert float(adam.steps[0]) == 4
+
+
+def test_first_step_rule_a_rejected_third_step_ends_the_epoch_without_a_smaller_step():
+    result, distance, adam = run("first_step", 0.15, restore="parameters_and_adam")
+    assert (result.off_iters, result.backtracks) == (2, 0)
+    assert result.lr == LR
+    assert distance == pytest.approx(2.0, rel=1e-6)
+    assert float(adam.steps[0]) == 2  # the Adam state was returned to the second step's
+
+
+def test_reference_a_rejected_first_step_is_retried_until_one_fits_then_the_epoch_ends():
+    # 0.003 rejects a full step (0.02) and a half (0.005), accepts a quarter (0.00125).
+    result, distance, _ = run("reference", 0.003)
+    assert (result.off_iters, result.backtracks) == (1, 2)
+    assert result.lr == LR / 4
+    assert distance == pytest.approx(0.25, rel=1e-6)
+
+
+def test_first_step_rule_retries_a_rejected_first_step_and_goes_on_at_the_reduced_rate():
+    # 0.019: a full step (0.02) is rejected, a half step (0.005) accepted; the next half step
+    # reaches the full step's 0.02 and ends the epoch (with a constant gradient two reduced
+    # steps add up to the rejected one, so here both rules stop after one step).
+    result, distance, _ = run("first_step", 0.019, restore="parameters_and_adam")
+    assert (result.off_iters, result.backtracks) == (1, 1)
+    assert result.lr == LR / 2
+    assert distance == pytest.approx(0.5, rel=1e-6)
+
+
+def test_reference_when_every_try_is_rejected_the_policy_stays_where_it_was():
+    result, distance, adam = run("reference", 0.0, backtrack_tries=4)
+    assert (result.off_iters, result.backtracks) == (0, 3)  # tries: lr, lr/2, lr/4, lr/8
+    assert result.lr == LR / 8
+    assert distance == 0.0
+    assert result.kl == 0.0
+
+
+def test_restoring_the_adam_state_too_returns_its_step_count():
+    _, _, kept = run("reference", 0.15, restore="parameters")
+    _, distance, restored = run("reference", 0.15, restore="parameters_and_adam")
+    assert float(kept.steps[0]) == 4 and float(restored.steps[0]) == 3
+    assert distance == pytest.approx(2.5, rel=1e-6)
+
+
+def test_the_loop_stops_at_max_off_iters():
+    result, distance, _ = run("reference", 1e9, max_off_iters=7)
+    assert (result.off_iters, result.backtracks) == (7, 0)
+    assert distance == pytest.approx(7.0, rel=1e-6)
+
+
+def test_members_backtrack_and_stop_each_on_their_own():
+    """Three members whose KLs grow at different speeds: each follows the rule alone, and a
+    member that stopped does not move while the others go on."""
+    pop, adam = population(3)
+    surrogate = Quadratic(pop, scale=torch.tensor([1.0, 4.0, 1e-6], dtype=torch.float64))
+    s = settings(kl_threshold=0.15, max_off_iters=10)
+    results = off_policy_loop(pop, adam, surrogate, torch.tensor([0, 1, 2]), s)
+    # Member 0 as above; member 1 (KL 8 lr^2 j^2): 0.08 after one step, 0.32 after two: the
+    # retry at lr / 2 (KL 0.18) is rejected, at lr / 4 (0.125) accepted; member 2 never leaves.
+    assert [(r.off_iters, r.backtracks) for r in results] == [(3, 1), (2, 2), (10, 0)]
+    assert [moved(pop, surrogate, m) for m in range(3)] == pytest.approx(
+        [2.5, 1.25, 10.0], rel=1e-6
+    )
+    for m, single in enumerate(results):
+        pop1, adam1 = population()
+        alone = Quadratic(pop1, scale=surrogate.scale[m : m + 1])
+        (r,) = off_policy_loop(pop1, adam1, alone, torch.tensor([0]), s)
+        assert (r.off_iters, r.backtracks, r.lr) == (single.off_iters, single.backtracks, single.lr)
