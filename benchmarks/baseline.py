@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from scipy.special import ndtr, ndtri
 
-from hmepol_cli.envs.base import NavigationWorld
+from hmepol_cli.envs.base import EDGE_ROUNDS, NavigationWorld
 from hmepol_cli.envs.corridor import CorridorWorld
 from hmepol_cli.envs.grid import SLOPE_STD, GridWorld
 from hmepol_cli.policies.base import Policy
@@ -32,7 +32,7 @@ class PlainWorld:
         self.walls = np.array(walls, dtype=np.float64).reshape(-1, 4)
         a = world.arena
         self.lo, self.hi = np.array([a.x0, a.y0]), np.array([a.x1, a.y1])
-        # Each wall and its mirror images across the edges: a reflected path touches a wall
+        # Each wall and its mirror images across the edges: a mirrored path touches a wall
         # exactly when its straight, unreflected line touches one of them.
         images = []
         for mx in (None, self.lo[0], self.hi[0]):
@@ -43,7 +43,7 @@ class PlainWorld:
                 if my is not None:
                     w[:, [1, 3]] = 2 * my - self.walls[:, [3, 1]]
                 images.append(w)
-        self.obstacles = np.concatenate(images)
+        self.mirrored_walls = np.concatenate(images)
         if isinstance(world, CorridorWorld):
             field = world.wind_field[config]
             self.wind_boxes = np.array([(b.x0, b.y0, b.x1, b.y1) for b, _ in field])
@@ -97,10 +97,24 @@ class PlainWorld:
         return self.move(position, np.clip(action, -bound, bound) + self.force(position), push)
 
     def move(self, position: np.ndarray, displacement: np.ndarray, push: np.ndarray) -> np.ndarray:
-        if not self._blocked(position, displacement):
-            return self._reflect(position + displacement)
+        end, blocked = self.travel(position, displacement)
+        if not blocked:
+            return end
         back = -np.sign(displacement) * push * self.world.push_back
-        return position if self._blocked(position, back) else self._reflect(position + back)
+        end, stuck = self.travel(position, back)
+        return position if stuck else end
+
+    def travel(self, p: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Where the move p + d ends under the world's edge rule, and whether it hits a wall."""
+        if self.world.edge == "mirror":
+            too_long = bool((np.abs(d) > self.hi - self.lo).any())
+            return self._reflect(p + d), too_long or touches(p, d, self.mirrored_walls)
+        points = slide_path(p, d, self.lo, self.hi)
+        if points is None:
+            return p, True
+        pieces = zip(points[:-1], points[1:], strict=True)
+        hit = any(touches(a, b - a, self.walls) for a, b in pieces)
+        return np.clip(points[-1], self.lo, self.hi), hit
 
     def _reflect(self, p: np.ndarray) -> np.ndarray:
         out = p.copy()
@@ -111,20 +125,59 @@ class PlainWorld:
                 out[axis] = lo + (2 * (hi - lo) - r if r > hi - lo else r)
         return out
 
-    def _blocked(self, p: np.ndarray, d: np.ndarray) -> bool:
-        if (np.abs(d) > self.hi - self.lo).any():
-            return True
-        enter, leave = np.zeros(len(self.obstacles)), np.ones(len(self.obstacles))
+
+def slide_path(
+    p: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray, rounds: int = EDGE_ROUNDS
+) -> list[np.ndarray] | None:
+    """The points a move passes under the reference's edge rule (REFERENCE_WORLDS.md): its
+    start, every point where it crosses an edge, its end; None if it is still turning after
+    ``rounds`` crossings. At a crossing the rest of the move, outward part n and part t along
+    the edge, becomes |n| along the edge in the direction of t and |t| back inside (t = 0:
+    straight back by |n|); a point exactly on the edge counts as beyond it."""
+    p, d = np.array(p, dtype=float), np.array(d, dtype=float)
+    points = [p.copy()]
+    for _ in range(rounds):
+        crossing = None  # (fraction of d, axis) of the first edge ahead
         for axis in (0, 1):
-            lo, hi = self.obstacles[:, axis], self.obstacles[:, axis + 2]
             if d[axis] == 0:
-                inside = (lo <= p[axis]) & (p[axis] <= hi)
-                enter = np.where(inside, enter, np.inf)
                 continue
-            t1, t2 = (lo - p[axis]) / d[axis], (hi - p[axis]) / d[axis]
-            enter = np.maximum(enter, np.minimum(t1, t2))
-            leave = np.minimum(leave, np.maximum(t1, t2))
-        return bool((enter <= leave).any())
+            edge = hi[axis] if d[axis] > 0 else lo[axis]
+            fraction = max((edge - p[axis]) / d[axis], 0.0)
+            if fraction <= 1 and (crossing is None or fraction < crossing[0]):
+                crossing = (fraction, axis)
+        if crossing is None:
+            points.append(p + d)
+            return points
+        fraction, axis = crossing
+        outward = 1.0 if d[axis] > 0 else -1.0
+        p = p + fraction * d
+        p[axis] = hi[axis] if outward > 0 else lo[axis]
+        points.append(p.copy())
+        rest = (1 - fraction) * d
+        n, t = abs(rest[axis]), rest[1 - axis]
+        d = np.zeros(2)
+        if t == 0:
+            d[axis] = -outward * n
+        else:
+            d[axis], d[1 - axis] = -outward * abs(t), np.sign(t) * n
+        if not d.any():
+            return points
+    return None
+
+
+def touches(p: np.ndarray, d: np.ndarray, boxes: np.ndarray) -> bool:
+    """Does the segment p + s d, s in [0, 1], touch one of the closed boxes (K, 4)?"""
+    enter, leave = np.zeros(len(boxes)), np.ones(len(boxes))
+    for axis in (0, 1):
+        lo, hi = boxes[:, axis], boxes[:, axis + 2]
+        if d[axis] == 0:
+            inside = (lo <= p[axis]) & (p[axis] <= hi)
+            enter = np.where(inside, enter, np.inf)
+            continue
+        t1, t2 = (lo - p[axis]) / d[axis], (hi - p[axis]) / d[axis]
+        enter = np.maximum(enter, np.minimum(t1, t2))
+        leave = np.minimum(leave, np.maximum(t1, t2))
+    return bool((enter <= leave).any())
 
 
 ACTIVATIONS = {torch.nn.ReLU: lambda x: np.maximum(x, 0.0), torch.nn.Tanh: np.tanh}

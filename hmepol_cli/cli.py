@@ -447,7 +447,7 @@ def _show(args: list[str]) -> None:
         fail(f"wind={values['wind']!r} is not a number")
     if not 0 <= wind < float("inf"):
         fail(f"wind={wind!r} must be a finite number >= 0")
-    world = make_world(OmegaConf.create({"name": name, "wind": wind}))
+    world = make_world(OmegaConf.create({"name": name, "wind": wind, "edge": "slide"}))
     out = Path(ns.out or f"outputs/show/{name}.png")
     show_world(world, out)
     print(f"hmepol: {name} drawn to {out}")

@@ -23,6 +23,9 @@ class EnvConfig:
     # corridor only: force of the wind along the corridor (top-level `wind` override); null in
     # fine-tuning means the pre-trained run's wind.
     wind: float | None = 0.4
+    # 2-D worlds: what a move past the arena's edge does: slide (the reference's quarter turn
+    # into a slide along the edge) | mirror (reflected, this project's rule before)
+    edge: str = "slide"
     # gym only (env=gym, or a preset such as env=ant_xy):
     id: str | None = None  # a Gymnasium id, e.g. Ant-v5, MountainCarContinuous-v0
     features: list[int] | None = None  # observation indices the entropy is on (null: all)
@@ -204,9 +207,11 @@ def validate(cfg: DictConfig) -> None:
     """Refuse values of the right type that mean nothing; one line names the value and the rule."""
     from hmepol_cli.algorithms import ALGORITHMS
     from hmepol_cli.envs import ENVIRONMENTS
+    from hmepol_cli.envs.base import EDGE_RULES
     from hmepol_cli.objectives import OBJECTIVES
 
     _one_of("env", cfg.env.name, tuple(ENVIRONMENTS))
+    _one_of("env.edge", cfg.env.edge, EDGE_RULES)
     _one_of("algo.name", cfg.algo.name, tuple(ALGORITHMS))
     _one_of("algo.objective", cfg.algo.objective, tuple(OBJECTIVES))
     _one_of("device", cfg.device, DEVICES)

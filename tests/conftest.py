@@ -34,20 +34,28 @@ def world64() -> SlopeWorld:
 def check_gradient_by_central_differences(
     objective, module: torch.nn.Module, generator: torch.Generator, *, rel: float, abs_tol: float
 ) -> int:
-    """Compare autograd's gradient of ``objective()`` with float64 central differences
-    (h = 1e-5) at 3 random entries of every parameter; -> how many were clearly nonzero."""
+    """Compare autograd's gradient of ``objective()`` with float64 central differences at 3
+    random entries of every parameter; -> how many were clearly nonzero.
+
+    The difference is taken with h = 1e-5, and again with h = 1e-6 where the two disagree: a
+    ReLU whose pre-activation is within h of 0 at some particle puts a kink inside [-h, h],
+    where a central difference is not the derivative (seen: 0.3% off at 1e-5, 1e-9 at 1e-6)."""
     module.zero_grad()
     objective().backward()
-    h, nonzero = 1e-5, 0
+    nonzero = 0
     for param in module.parameters():
         flat, grad = param.data.view(-1), param.grad.view(-1)
         for i in torch.randperm(flat.numel(), generator=generator)[:3].tolist():
-            with torch.no_grad():
-                flat[i] += h
-                up = objective().item()
-                flat[i] -= 2 * h
-                down = objective().item()
-                flat[i] += h
-            assert grad[i].item() == pytest.approx((up - down) / (2 * h), rel=rel, abs=abs_tol)
+            for h in (1e-5, 1e-6):
+                with torch.no_grad():
+                    flat[i] += h
+                    up = objective().item()
+                    flat[i] -= 2 * h
+                    down = objective().item()
+                    flat[i] += h
+                estimate = pytest.approx((up - down) / (2 * h), rel=rel, abs=abs_tol)
+                if grad[i].item() == estimate:
+                    break
+            assert grad[i].item() == estimate
             nonzero += abs(grad[i].item()) > 1e-5
     return nonzero

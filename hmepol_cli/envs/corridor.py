@@ -56,7 +56,7 @@ import math
 import numpy as np
 import torch
 
-from hmepol_cli.envs.base import Box, NavigationWorld, lattice
+from hmepol_cli.envs.base import Box, NavigationWorld, edge_rule, lattice
 
 ARENA = Box(-6.0, -6.0, 6.0, 6.0)
 ROOM = Box(-2.0, -2.0, 2.0, 2.0)  # interior, wind-free
@@ -116,7 +116,7 @@ class CorridorWorld(NavigationWorld):
     @classmethod
     def from_config(cls, env_cfg) -> CorridorWorld:
         wind = getattr(env_cfg, "wind", None)
-        return cls(wind=DEFAULT_WIND if wind is None else wind)
+        return cls(wind=DEFAULT_WIND if wind is None else wind, edge=edge_rule(env_cfg))
 
     def describe(self, config: int) -> str:
         return f"wind {self.wind:g} in the corridor only" if self.wind > 0 else "no wind"
@@ -132,11 +132,11 @@ class CorridorWorld(NavigationWorld):
         directions = self.wind_direction(at, configurations).cpu().double().numpy()
         return [(points, directions)], 0.55 * (a.x1 - a.x0) / n
 
-    def __init__(self, wind: float = DEFAULT_WIND) -> None:
+    def __init__(self, wind: float = DEFAULT_WIND, edge: str = "slide") -> None:
         if not 0 <= wind < math.inf:
             raise ValueError(f"wind={wind!r} must be a finite number >= 0")
         self.wind = float(wind)
-        super().__init__()
+        super().__init__(edge)
 
     def _build_tensors(self) -> None:
         super()._build_tensors()

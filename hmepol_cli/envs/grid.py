@@ -115,6 +115,7 @@ class GridWorld(NavigationWorld):
         slopes: list[SlopeSpec],
         probs: tuple[float, ...],
         names: tuple[str, ...],
+        edge: str = "slide",
     ) -> None:
         if not len(layouts) == len(slopes) == len(probs) == len(names):
             raise ValueError("one layout, slope, probability and name per configuration")
@@ -123,7 +124,7 @@ class GridWorld(NavigationWorld):
         self.walls = tuple(walls_from_ascii(rows) for rows in layouts)
         self.configuration_probs = tuple(probs)
         self.configuration_names = tuple(names)
-        super().__init__()
+        super().__init__(edge)
 
     def _build_tensors(self) -> None:
         super()._build_tensors()

@@ -61,13 +61,15 @@ def register_envs() -> None:
         )
 
 
-def build_world(world: str, wind: float | None = None) -> NavigationWorld:
-    """The world called ``world``; ``wind`` is the corridor's only parameter."""
+def build_world(world: str, wind: float | None = None, edge: str = "slide") -> NavigationWorld:
+    """The world called ``world``; ``wind`` is the corridor's only parameter; ``edge`` the
+    arena edge's rule (slide, the reference's, or mirror)."""
     from hmepol_cli.envs import make_world  # here, not at the top: the package imports us
 
     if wind is not None and world != "corridor":
         raise ValueError(f"wind={wind!r} is a parameter of the corridor only, not of {world!r}")
-    return make_world(SimpleNamespace(name=world, wind=DEFAULT_WIND if wind is None else wind))
+    wind = DEFAULT_WIND if wind is None else wind
+    return make_world(SimpleNamespace(name=world, wind=wind, edge=edge))
 
 
 def _spaces(world: NavigationWorld) -> tuple[gym.spaces.Box, gym.spaces.Box]:
@@ -102,12 +104,13 @@ class NavigationEnv(gym.Env[np.ndarray, np.ndarray]):
         horizon: int = DEFAULT_HORIZON,
         wind: float | None = None,
         render_mode: str | None = None,
+        edge: str = "slide",
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon={horizon!r} must be a whole number >= 1")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r} is not allowed; use 'rgb_array' or None")
-        self.world = build_world(world, wind)
+        self.world = build_world(world, wind, edge)
         self.horizon = int(horizon)
         self.render_mode = render_mode
         self.observation_space, self.action_space = _spaces(self.world)
@@ -187,12 +190,13 @@ class NavigationVectorEnv(VectorEnv):
         horizon: int = DEFAULT_HORIZON,
         wind: float | None = None,
         device: str = "cpu",
+        edge: str = "slide",
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} must be a whole number >= 1")
         if horizon < 1:
             raise ValueError(f"horizon={horizon!r} must be a whole number >= 1")
-        self.world = build_world(world, wind).to(device)
+        self.world = build_world(world, wind, edge).to(device)
         self.num_envs = int(num_envs)
         self.horizon = int(horizon)
         self.device = self.world.device

@@ -175,10 +175,11 @@ CONFIGS: tuple[tuple[str, list[str], SlopeSpec], ...] = (
 class MultiGridWorld(GridWorld):
     name = "multigrid"
 
-    def __init__(self) -> None:
+    def __init__(self, edge: str = "slide") -> None:
         super().__init__(
             layouts=[layout for _, layout, _ in CONFIGS],
             slopes=[slope for _, _, slope in CONFIGS],
             probs=tuple(1.0 / len(CONFIGS) for _ in CONFIGS),
             names=tuple(name for name, _, _ in CONFIGS),
+            edge=edge,
         )

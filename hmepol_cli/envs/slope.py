@@ -20,7 +20,7 @@ SLOPE_MEAN = 0.1  # thesis 5.1: N(0.1, 0.01) truncated to [0, 0.2]
 class SlopeWorld(GridWorld):
     name = "slope"
 
-    def __init__(self) -> None:
+    def __init__(self, edge: str = "slide") -> None:
         super().__init__(
             layouts=[FOUR_ROOMS, FOUR_ROOMS],
             slopes=[
@@ -29,4 +29,5 @@ class SlopeWorld(GridWorld):
             ],
             probs=(0.8, 0.2),
             names=("south slope", "north slope"),
+            edge=edge,
         )

@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from hmepol_cli.config import DEVICES, check_wind, parse_bptt, validate_policy
 from hmepol_cli.envs import ENVIRONMENTS, GymWorld, World, make_world
+from hmepol_cli.envs.base import edge_rule
 from hmepol_cli.errors import ConfigError, UserError
 from hmepol_cli.finetune.task import GoalTask, RewardTask, TargetError, make_tasks
 from hmepol_cli.finetune.trpo import TRPO, TRPOSettings, TRPOStep
@@ -50,7 +51,7 @@ COLUMNS = [
     "config_name", "episode_length", "accepted", "seconds",
 ]  # fmt: skip
 SCRATCH = "scratch"
-SCRATCH_ENV = {"name": "slope", "wind": 0.4}  # the world of init=none when none is named
+SCRATCH_ENV = {"name": "slope", "wind": 0.4, "edge": "slide"}  # init=none's world, if none named
 
 
 @dataclass
@@ -144,6 +145,7 @@ def initial_policy(
         )
     policy, run_cfg = load_trained_policy(init_path, device=device)
     run_env = OmegaConf.to_container(run_cfg.env, resolve=True) if "env" in run_cfg else {}
+    run_env["edge"] = edge_rule(run_env)  # a run from before env.edge ran with the mirror
     if "name" in override and override["name"] != run_env.get("name"):
         run_env = {"wind": run_env.get("wind")}  # another world: only the wind carries over
     env = OmegaConf.create({**SCRATCH_ENV, **{k: v for k, v in run_env.items() if v is not None},
