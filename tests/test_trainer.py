@@ -222,7 +222,7 @@ def test_a_diverging_run_says_so_in_its_log_and_its_csv(tmp_path, caplog):
     assert not pd.read_csv(tmp_path / "calm" / "run" / "epochs.csv").diverged.any()
 
 
-# ------------------------------------------------------------------ float64, the reference's precision
+# ------------------------------------------------------------------ float64 (the reference's)
 @pytest.mark.parametrize("policy", ["markov", "recursive", "twohead", "gru", "lstm"])
 @pytest.mark.parametrize("algo", ["mepol", "alphamepol", "hmepol"])
 def test_float64_runs_every_algorithm_and_policy(tmp_path, algo, policy):
