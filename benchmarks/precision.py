@@ -74,13 +74,15 @@ def one_update(trainer: Trainer, rollout: Rollout, neighbours) -> dict:
     s = trainer.settings
     surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, s)
     rows = torch.arange(1)
-    entropies, kl, value, target = surrogate(rows)
-    grads = mepol._gradients(value, trainer.population.params)
+    start = surrogate(rows)
+    entropies, kl, target = start.entropies, start.kl, start.likelihoods
+    grads = mepol._gradients(start.objective, trainer.population.params)
     flat = torch.cat([g[0].flatten().double() for g in grads.values()])
     lr = torch.full((1,), s.lr, dtype=torch.float64)
     trainer.optimizer.step(grads, lr, torch.ones(1, dtype=torch.bool))
     with torch.no_grad():
-        stepped, kl_step, _, _ = surrogate(rows)
+        after = surrogate(rows)
+        stepped, kl_step = after.entropies, after.kl
     return {
         "log_probs": target[0].double(),
         "kl_start": float(kl[0].detach()),

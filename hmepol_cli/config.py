@@ -104,6 +104,13 @@ class AlarmConfig:
 
 
 @dataclass
+class CheckpointConfig:
+    # Keep checkpoints/epoch_<n>.pt every keep_every epochs besides last.pt (0: only last.pt);
+    # fine-tuning starts from one with init=<run dir>@<n>.
+    keep_every: int = 0
+
+
+@dataclass
 class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     algo: AlgoConfig = field(default_factory=AlgoConfig)
@@ -111,6 +118,10 @@ class Config:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     alarms: AlarmConfig = field(default_factory=AlarmConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    # steps.csv (every off-policy step: lr, accepted, one-step and exact KL, IW entropy) and
+    # epochs.csv's kl_exact; the exact KL costs one full-history pass per step (recursive).
+    diagnostics: bool = False
     seed: int = 0
     # A population: runs that differ only in their seed, trained together (one per seed).
     seeds: list[int] | None = None
@@ -247,6 +258,10 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(
             f"estimator.k={cfg.estimator.k} must be smaller than the particles of a mini-batch "
             f"(batch_size * horizon = {cfg.algo.batch_size * cfg.algo.horizon})"
+        )
+    if cfg.checkpoint.keep_every < 0:
+        raise ConfigError(
+            f"checkpoint.keep_every={cfg.checkpoint.keep_every!r} must be a whole number >= 0"
         )
     if cfg.epochs < 0:
         raise ConfigError(f"epochs={cfg.epochs!r} must be >= 0")

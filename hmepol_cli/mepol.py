@@ -70,6 +70,7 @@ class OffPolicySettings:
     restore: str  # parameters | parameters_and_adam
     exact_kl: bool  # judge steps by the KL of likelihoods over the whole history
     bptt: int | None  # steps of the recursion the likelihoods recompute (None: all)
+    diagnostics: bool = False  # record every step (StepRecord), the exact KL among them
 
     @classmethod
     def from_config(cls, cfg: DictConfig, history_size: int) -> OffPolicySettings:
@@ -93,7 +94,22 @@ class OffPolicySettings:
             restore=str(a.get("backtrack_restore", "parameters_and_adam")),
             exact_kl=a.trust_region == "exact" and history_size > 0,
             bptt=parse_bptt(cfg.policy.bptt),
+            diagnostics=bool(cfg.get("diagnostics", False)),
         )
+
+
+@dataclass
+class StepRecord:
+    """One off-policy step tried (``OffPolicySettings.diagnostics``): steps.csv's row."""
+
+    step: int  # 0, 1, ... in the order tried
+    lr: float
+    accepted: bool
+    kl: float  # the KL the trust region judged the step by
+    kl_one_step: float  # eq. 2.8 from the likelihoods the gradient uses (policy.bptt)
+    kl_exact: float  # eq. 2.8 from likelihoods over the whole history (NaN: Markovian)
+    iw_entropy: float  # the surrogate: mean IW entropy of the mini-batches (eq. 2.7)
+    objective: float
 
 
 @dataclass
@@ -105,6 +121,8 @@ class UpdateResult:
     off_iters: int  # accepted steps
     backtracks: int  # learning-rate reductions
     lr: float  # the learning rate of the last step tried
+    kl_exact: float = math.nan  # the exact KL of the accepted policy (diagnostics)
+    steps: list[StepRecord] = field(default_factory=list)  # every step tried (diagnostics)
 
 
 @dataclass
@@ -118,6 +136,8 @@ class EpochStats:
     history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
     action_max: float = 0.0  # largest |a_t| drawn (before clipping): diverging means show here
     floor_share: float = 0.0  # share of particles whose ball volume hit the estimator's floor
+    log_std: float = 0.0  # the sampling policy's log-std, averaged over action dimensions
+    clip_share: float = 0.0  # share of action components past the action bounds
     seconds: dict[str, float] = field(default_factory=dict)
     broken: list[str] = field(default_factory=list)  # non-finite in the rollout: the member stops
 
@@ -187,18 +207,22 @@ def _update(
     t3 = time.perf_counter()
     seconds = {"collect": t1 - t0, "neighbours": t2 - t1, "update": t3 - t2, "epoch": t3 - t0}
     floor = estimators.floor_share(neighbours, s.eps, per_batch=True).view(n, -1)
+    low, high = world.action_bounds()
+    clipped = ((rollout.actions < low) | (rollout.actions > high)).flatten(1)
     host = torch.stack(  # one transfer for every per-member statistic
         [
             _amax_per_member(rollout.histories).double(),
             _amax_per_member(rollout.actions).double(),
             floor.mean(-1).double(),
             objective(entropies, s.objective, s.alpha).double(),
+            rollout.log_std.double().mean(-1),
+            clipped.double().mean(-1),
         ]
     ).cpu()
     entropies_host = entropies.double().cpu().numpy()
     stats = []
     for i in range(n):
-        history_max, action_max, floor_i, objective_i = host[:, i].tolist()
+        history_max, action_max, floor_i, objective_i, log_std, clip_share = host[:, i].tolist()
         stats.append(
             EpochStats(
                 entropies=entropies_host[i],
@@ -208,6 +232,8 @@ def _update(
                 history_max=history_max,
                 action_max=action_max,
                 floor_share=floor_i,
+                log_std=log_std,
+                clip_share=clip_share,
                 seconds=seconds,
             )
         )
@@ -215,11 +241,23 @@ def _update(
 
 
 # ------------------------------------------------------------------ the objective and the KL
+@dataclass
+class Estimate:
+    """The surrogate at some parameters theta', for R rows of a rollout."""
+
+    entropies: torch.Tensor  # (R, M) IW entropies of the mini-batches (eq. 2.7)
+    kl: torch.Tensor  # (R,) the KL the trust region judges by
+    objective: torch.Tensor  # (R,) mean or CVaR of the entropies (differentiable)
+    likelihoods: torch.Tensor  # (R, N, T) log pi_theta'(a_t | h_t) the gradient uses, detached
+    kl_one_step: torch.Tensor  # (R,) eq. 2.8 from those likelihoods
+    kl_exact: torch.Tensor | None = None  # (R,) eq. 2.8 from likelihoods over the whole history
+
+
 class Surrogate:
     """The objective and the KL of target parameters theta' on one epoch's fixed particles,
     sampled under theta (eqs. 2.7, 2.8, 3.3), for the members of a rollout.
 
-    Rows of the rollout are members ``members[i]``; calls take member indices."""
+    Rows of the rollout are members ``members[i]``; calls take rows."""
 
     def __init__(
         self,
@@ -234,13 +272,14 @@ class Surrogate:
         self.batches = neighbours.radius.shape[0] // len(members)  # M per member
         self.row_of = {int(m): i for i, m in enumerate(members.tolist())}
         self.behaviour: torch.Tensor | None = None  # log pi_theta(a_t | h_t), as theta' computes it
+        recursive = population.history_size > 0
+        self.with_exact = recursive and (settings.exact_kl or settings.diagnostics)
 
     def rows(self, members: Sequence[int]) -> torch.Tensor:
         return torch.tensor([self.row_of[int(m)] for m in members], device=self.members.device)
 
-    def __call__(self, rows: torch.Tensor):
-        """At the current parameters, for rollout rows ``rows`` (R,):
-        -> (IW entropies (R, M), KL (R,), objective (R,), likelihoods (R, N, T), detached).
+    def __call__(self, rows: torch.Tensor) -> Estimate:
+        """The estimate at the current parameters for rollout rows ``rows`` (R,).
 
         The first call (theta' = theta) also fixes the behaviour likelihoods: the sampling
         policy's, computed exactly as theta' computes its own, so the log-ratios start at 0."""
@@ -258,16 +297,23 @@ class Surrogate:
             _live(target - behaviour, alive).flatten(0, 1), s.batch_size
         )
         entropies = estimators.iw_entropy(weights, nb, s.eps).view(len(rows), -1)  # eq. 2.7
-        if s.exact_kl:
-            kl = self._exact_kl(who, inputs, actions, histories, alive, rows, nb)
-        else:
-            kl = estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)  # eq. 2.8
-        return entropies, kl, objective(entropies, s.objective, s.alpha), target.detach()
+        one_step = estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)  # eq. 2.8
+        exact = self._exact_kl(who, inputs, actions, histories, alive, rows, nb)
+        return Estimate(
+            entropies=entropies,
+            kl=exact if s.exact_kl and exact is not None else one_step,
+            objective=objective(entropies, s.objective, s.alpha),
+            likelihoods=target.detach(),
+            kl_one_step=one_step,
+            kl_exact=exact,
+        )
 
     @torch.no_grad()
-    def _exact_kl(self, who, inputs, actions, histories, alive, rows, nb) -> torch.Tensor:
-        """The guard the one-step likelihoods lack: the KL of the same step computed from
+    def _exact_kl(self, who, inputs, actions, histories, alive, rows, nb) -> torch.Tensor | None:
+        """What the one-step likelihoods do not see: the KL of the same step computed from
         likelihoods over the whole history, against the exact sampling likelihoods."""
+        if not self.with_exact:
+            return None
         s = self.settings
         exact = self.population.log_prob(who, inputs, actions, histories, None)
         sampling = self.rollout.log_probs.index_select(0, rows)
@@ -292,34 +338,51 @@ def off_policy_loop(
     s, device, size = settings, population.device, population.size
     params = population.params
     # theta' = theta: the IW objective equals the on-policy one and the KL is 0.
-    every_row = torch.arange(len(members), device=device)
-    entropies, kl, value, _ = surrogate(every_row)
-    grads = _gradients(value, params)
-    accepted_entropies = entropies.detach().double().cpu().numpy()  # (S', M), per row
+    start = surrogate(torch.arange(len(members), device=device))
+    grads = _gradients(start.objective, params)
+    accepted_entropies = start.entropies.detach().double().cpu().numpy()  # (S', M), per row
     accepted_kl = [0.0] * len(members)
+    accepted_exact = [0.0 if start.kl_exact is not None else math.nan] * len(members)
     keep_adam = s.restore == "parameters_and_adam"
     last_accepted = Snapshot(population, optimizer, grads, with_optimizer=keep_adam)
     lr = torch.full((size,), s.lr, dtype=torch.float64, device=device)
     off_iters, backtracks = [0] * size, [0] * size
+    records: dict[int, list[StepRecord]] = {int(m): [] for m in members.tolist()}
     searching = torch.zeros(size, dtype=torch.bool, device=device)  # members still stepping
     searching[members] = s.max_off_iters > 0
     while bool(searching.any()):
         optimizer.step(grads, lr, searching)  # theta' <- theta' + Adam step
         stepped = searching.nonzero()[:, 0].tolist()
-        rows = surrogate.rows(stepped)
-        entropies, kl, value, _ = surrogate(rows)
-        grads = _merge(grads, _gradients(value, params), _mask(stepped, size, device))
-        in_region = (kl <= s.kl_threshold) & torch.isfinite(value)
+        estimate = surrogate(surrogate.rows(stepped))
+        grads = _merge(grads, _gradients(estimate.objective, params), _mask(stepped, size, device))
+        in_region = (estimate.kl <= s.kl_threshold) & torch.isfinite(estimate.objective)
         # One host sync per iteration: on a GPU the loop waits for the device only here.
-        flags, kl_values = torch.stack((in_region.to(kl.dtype), kl.detach())).tolist()
+        numbers = [in_region.to(estimate.kl.dtype), estimate.kl.detach()]
+        if s.diagnostics:
+            exact = estimate.kl_exact
+            numbers += [
+                estimate.kl_one_step.detach(),
+                torch.full_like(estimate.kl, math.nan) if exact is None else exact,
+                estimate.entropies.detach().mean(-1),
+                estimate.objective.detach(),
+            ]
+        host = torch.stack(numbers).tolist()
+        flags, kl_values = host[0], host[1]
         accepted = torch.zeros(size, dtype=torch.bool, device=device)
         rejected = torch.zeros(size, dtype=torch.bool, device=device)
         accepted_now = []
         for i, m in enumerate(stepped):
+            if s.diagnostics:
+                records[m].append(
+                    StepRecord(len(records[m]), float(lr[m]), bool(flags[i]), kl_values[i],
+                               *(row[i] for row in host[2:]))
+                )  # fmt: skip
             if flags[i]:
                 accepted[m] = True
                 off_iters[m] += 1
                 accepted_kl[surrogate.row_of[m]] = kl_values[i]
+                if s.diagnostics:
+                    accepted_exact[surrogate.row_of[m]] = host[3][i]
                 accepted_now.append(i)
                 done = off_iters[m] >= s.max_off_iters
                 if s.backtracking == "reference":
@@ -339,7 +402,7 @@ def off_policy_loop(
                     backtracks[m] += 1
             searching[m] = retry
         if accepted_now:
-            kept = entropies.detach().double().cpu().numpy()
+            kept = estimate.entropies.detach().double().cpu().numpy()
             for i in accepted_now:
                 accepted_entropies[surrogate.row_of[stepped[i]]] = kept[i]
         last_accepted.take(population, optimizer, grads, accepted)
@@ -352,6 +415,8 @@ def off_policy_loop(
             off_iters=off_iters[m],
             backtracks=backtracks[m],
             lr=lr_host[m],
+            kl_exact=accepted_exact[surrogate.row_of[m]] if s.diagnostics else math.nan,
+            steps=records[m],
         )
         for m in members.tolist()
     ]

@@ -9,7 +9,9 @@ A run directory holds::
     commands.log         one line per invocation: time, host, pid, command line
     epochs.csv           train: one row per epoch
     batches.csv          train: one row per mini-batch (epoch, batch, config, entropy)
+    steps.csv            train, with diagnostics: one row per off-policy step tried
     checkpoints/last.pt  train: policy, optimizer and random state (loaded with weights_only=True)
+    checkpoints/epoch_<n>.pt  train, every checkpoint.keep_every epochs: the same after n epochs
     eval/<name>.npz      train: positions_c<c>, (n, T + 1, 2) fresh rollouts per configuration
     eval/<name>/*.png    train: heatmaps and trajectory plots
     finetune.csv         finetune: one row per (epoch, configuration, target)
@@ -53,9 +55,17 @@ RUN_INFO = "run.json"
 COMMANDS = "commands.log"
 EPOCHS_CSV = "epochs.csv"
 BATCHES_CSV = "batches.csv"
+STEPS_CSV = "steps.csv"
 FINETUNE_CSV = "finetune.csv"
 TARGETS_JSON = "targets.json"
 CHECKPOINT = Path("checkpoints") / "last.pt"
+
+
+def epoch_checkpoint(epochs: int) -> Path:
+    """The checkpoint kept after ``epochs`` epochs (``checkpoint.keep_every``)."""
+    return CHECKPOINT.parent / f"epoch_{epochs:04d}.pt"
+
+
 EVAL_DIR = "eval"
 FINAL_EVAL = "final"
 LOCK = ".lock"
@@ -74,6 +84,8 @@ RESUMABLE_KEYS = (
     "skip_finished",
     "seeds",
     "env.workers",  # a Gymnasium world's processes: the same episodes with any count
+    "diagnostics",  # what is recorded, not what is computed
+    "checkpoint",
 )
 
 
@@ -184,9 +196,25 @@ def run_config(run_dir: Path) -> DictConfig:
     return OmegaConf.load(run_dir / CONFIG)
 
 
-def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
-    """(run directory, checkpoint file) from either of them."""
-    path = Path(path)
+def resolve_checkpoint(path: Path | str) -> tuple[Path, Path]:
+    """(run directory, checkpoint file) from a run directory, a checkpoint file, or
+    ``<run directory>@<epoch>``: the checkpoint kept after that many epochs."""
+    text = str(path)
+    run, at, epoch = text.rpartition("@") if "@" in text else (text, "", "")
+    path = Path(run)
+    if at:
+        if not epoch.isdigit():
+            raise RunDirError(f"{text!r}: after '@' give a number of epochs, e.g. {run}@100")
+        run_config(path)
+        checkpoint = path / epoch_checkpoint(int(epoch))
+        if not checkpoint.is_file():
+            kept = sorted(p.stem.removeprefix("epoch_") for p in (path / CHECKPOINT.parent).glob(
+                "epoch_*.pt"))  # fmt: skip
+            have = ", ".join(str(int(k)) for k in kept) or "none (run with checkpoint.keep_every=n)"
+            raise RunDirError(
+                f"{run!r} kept no checkpoint after {int(epoch)} epochs; it has: {have}"
+            )
+        return path, checkpoint
     if path.is_file():
         run_dir = path.parent.parent if path.parent.name == CHECKPOINT.parent.name else path.parent
         return run_dir, path
@@ -197,10 +225,11 @@ def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
     return path, checkpoint
 
 
-def load_trained_policy(path: Path, device: str | torch.device = "cpu"):
-    """The policy of a run (directory or checkpoint file) and the run's config.
+def load_trained_policy(path: Path | str, device: str | torch.device = "cpu"):
+    """The policy of a run (directory, checkpoint file, or ``<run>@<epochs>``), the run's
+    config and the number of epochs the checkpoint holds.
 
-    -> (Policy on ``device``, DictConfig of the run)"""
+    -> (Policy on ``device``, DictConfig of the run, epochs)"""
     from hmepol_cli.policies import make_policy
 
     run_dir, checkpoint = resolve_checkpoint(path)
@@ -214,7 +243,7 @@ def load_trained_policy(path: Path, device: str | torch.device = "cpu"):
         raise RunDirError(
             f"{checkpoint} does not hold the policy its run describes ({reason})"
         ) from None
-    return policy.to(device), cfg
+    return policy.to(device), cfg, int(state.get("epoch", -1))
 
 
 # ------------------------------------------------------------------------------ identity
@@ -470,15 +499,19 @@ class RunDirectory:
 
 # ------------------------------------------------------------------------------ training CSVs
 class EpochLog:
-    """epochs.csv and batches.csv of a training run, rewritten atomically every epoch.
+    """epochs.csv, batches.csv (and, with diagnostics, steps.csv) of a training run, rewritten
+    atomically every epoch.
 
     Rows of epochs a checkpoint does not cover are dropped on resume (:meth:`truncate`), so
     every epoch appears exactly once."""
 
     def __init__(self, run_dir: Path) -> None:
         self.run_dir = Path(run_dir)
-        self.epochs = self._read(EPOCHS_CSV)
-        self.batches = self._read(BATCHES_CSV)
+        self.tables = {name: self._read(name) for name in (EPOCHS_CSV, BATCHES_CSV, STEPS_CSV)}
+
+    @property
+    def epochs(self) -> pd.DataFrame:
+        return self.tables[EPOCHS_CSV]
 
     def _read(self, name: str) -> pd.DataFrame:
         path = self.run_dir / name
@@ -486,20 +519,24 @@ class EpochLog:
 
     def truncate(self, next_epoch: int) -> None:
         """Keep only epochs < next_epoch (the ones the checkpoint covers)."""
-        if len(self.epochs):
-            self.epochs = self.epochs[self.epochs["epoch"] < next_epoch]
-        if len(self.batches):
-            self.batches = self.batches[self.batches["epoch"] < next_epoch]
+        for name, table in self.tables.items():
+            if len(table):
+                self.tables[name] = table[table["epoch"] < next_epoch]
         self._flush()
 
-    def append(self, row: dict[str, Any], batches: pd.DataFrame) -> None:
-        self.epochs = pd.concat([self.epochs, pd.DataFrame([row])], ignore_index=True)
-        self.batches = pd.concat([self.batches, batches], ignore_index=True)
+    def append(
+        self, row: dict[str, Any], batches: pd.DataFrame, steps: pd.DataFrame | None = None
+    ) -> None:
+        new = {EPOCHS_CSV: pd.DataFrame([row]), BATCHES_CSV: batches, STEPS_CSV: steps}
+        for name, rows in new.items():
+            if rows is not None and len(rows):
+                self.tables[name] = pd.concat([self.tables[name], rows], ignore_index=True)
         self._flush()
 
     def _flush(self) -> None:
-        write_csv(self.run_dir / EPOCHS_CSV, self.epochs)
-        write_csv(self.run_dir / BATCHES_CSV, self.batches)
+        for name, table in self.tables.items():
+            if name != STEPS_CSV or len(table) or (self.run_dir / name).exists():
+                write_csv(self.run_dir / name, table)
 
     @property
     def last_finite(self) -> dict[str, float]:

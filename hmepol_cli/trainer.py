@@ -11,6 +11,7 @@ stops there, recorded as failed, while the others go on.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -37,6 +38,7 @@ from hmepol_cli.rundir import (
     FINAL_EVAL,
     EpochLog,
     RunDirectory,
+    epoch_checkpoint,
     load_checkpoint,
     save_checkpoint,
 )
@@ -106,18 +108,21 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, s: int, next_epoch: int) -> None:
+        """Member s's checkpoint after ``next_epoch`` epochs; kept apart as well every
+        ``checkpoint.keep_every`` epochs (fine-tuning can start from any of them)."""
         member = self.members[s]
-        save_checkpoint(
-            member.run_dir / CHECKPOINT,
-            {
-                "epoch": next_epoch,
-                "policy": self.population.member_state_dict(s),
-                "optimizer": self.optimizer.member_state_dict(s),
-                "generator": member.generator.get_state(),
-                "state_dim": self.world.state_dim,
-                "action_dim": self.world.action_dim,
-            },
-        )
+        state = {
+            "epoch": next_epoch,
+            "policy": self.population.member_state_dict(s),
+            "optimizer": self.optimizer.member_state_dict(s),
+            "generator": member.generator.get_state(),
+            "state_dim": self.world.state_dim,
+            "action_dim": self.world.action_dim,
+        }
+        save_checkpoint(member.run_dir / CHECKPOINT, state)
+        keep_every = int(self.cfg.checkpoint.keep_every)
+        if keep_every and next_epoch % keep_every == 0:
+            save_checkpoint(member.run_dir / epoch_checkpoint(next_epoch), state)
 
     def restore(self) -> list[int]:
         """Continue every member from its last checkpoint, if it has one (directories open).
@@ -342,8 +347,8 @@ class Trainer:
 
 def _epoch_rows(
     epoch: int, stats: EpochStats, diverged: bool, n_configurations: int
-) -> tuple[dict, pd.DataFrame]:
-    """One member's epoch as its epochs.csv row and batches.csv rows."""
+) -> tuple[dict, pd.DataFrame, pd.DataFrame | None]:
+    """One member's epoch as its epochs.csv row, batches.csv rows and steps.csv rows."""
     u = stats.update
     row = {"epoch": epoch, "entropy": float(stats.entropies.mean()), "objective": stats.objective}
     for c in range(n_configurations):
@@ -352,11 +357,14 @@ def _epoch_rows(
     row.update(
         entropy_iw=float(u.entropies.mean()),
         kl=u.kl,
+        kl_exact=u.kl_exact,
         off_iters=u.off_iters,
         backtracks=u.backtracks,
         lr=u.lr,
         history_max=stats.history_max,
         action_max=stats.action_max,
+        log_std=stats.log_std,
+        clip_share=stats.clip_share,
         diverged=diverged,
         floor_share=stats.floor_share,
         seconds=stats.seconds["epoch"],
@@ -373,4 +381,7 @@ def _epoch_rows(
             "entropy": stats.entropies,
         }
     )
-    return row, batches
+    steps = None
+    if u.steps:
+        steps = pd.DataFrame([{"epoch": epoch, **dataclasses.asdict(r)} for r in u.steps])
+    return row, batches, steps

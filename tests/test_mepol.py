@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 import torch
 
-from hmepol_cli.mepol import OffPolicySettings, off_policy_loop
+from hmepol_cli.mepol import Estimate, OffPolicySettings, off_policy_loop
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 
 LR = 0.1
@@ -47,7 +47,8 @@ class Quadratic:
         log_std = self.population.params["log_std"].index_select(0, rows)
         value = log_std.sum(-1)
         kl = self.scale[rows] * (log_std - self.start[rows]).pow(2).sum(-1).detach()
-        return value[:, None].detach().repeat(1, 2), kl, value, None
+        entropies = value[:, None].detach().repeat(1, 2)
+        return Estimate(entropies, kl, value, torch.zeros(len(rows), 1, 1), kl)
 
 
 def population(size: int = 1) -> tuple[PolicyPopulation, PopulationAdam]:

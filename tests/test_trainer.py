@@ -234,3 +234,86 @@ def test_float64_runs_every_algorithm_and_policy(tmp_path, algo, policy):
     assert np.isfinite(stats.entropies).all() and np.isfinite(stats.update.entropies).all()
     assert stats.update.off_iters > 0 and 0 <= stats.update.kl <= 0.5
     assert all(v.dtype == torch.float64 for v in trainer.population.params.values())
+
+
+# ------------------------------------------------------------------ diagnostics
+def test_exact_and_one_step_kl_agree_at_full_bptt_and_are_zero_at_the_start(tmp_path):
+    trainer = tiny_trainer(
+        tmp_path, "algo=hmepol", "policy.bptt=full", "dtype=float64", "diagnostics=true"
+    )
+    gen = trainer.members[0].generator
+    configurations = draw_configurations(trainer.world, 10, 5, gen)[None]
+    rollout = collect(trainer.world, trainer.population, None, configurations, 40, [gen])
+    particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
+    neighbours = estimators.nearest_neighbours(particles, 5)
+    members = torch.tensor([0])
+    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
+    start = surrogate(torch.tensor([0]))
+    assert float(start.kl_one_step.detach()) == 0.0 and float(start.kl_exact) == 0.0
+    (result,) = mepol.off_policy_loop(
+        trainer.population, trainer.optimizer, surrogate, members, trainer.settings
+    )
+    assert len(result.steps) == result.off_iters + result.backtracks > 0
+    for step in result.steps:
+        assert step.kl_exact == pytest.approx(step.kl_one_step, rel=1e-9, abs=1e-12)
+        assert step.kl == step.kl_one_step  # the trust region judged by the one-step KL
+
+
+def test_diagnostics_write_every_step_and_change_no_number(tmp_path):
+    overrides = ("algo=hmepol", "epochs=2", "algo.kl_threshold=0.05", "algo.lr=1e-2")
+    plain = tiny_trainer(tmp_path / "plain", *overrides)
+    plain.train()
+    traced = tiny_trainer(tmp_path / "traced", *overrides, "diagnostics=true")
+    traced.train()
+    a = pd.read_csv(tmp_path / "plain" / "run" / "epochs.csv")
+    b = pd.read_csv(tmp_path / "traced" / "run" / "epochs.csv")
+    same = ["entropy", "entropy_iw", "kl", "off_iters", "backtracks", "lr", "history_max"]
+    pd.testing.assert_frame_equal(a[same], b[same])
+    assert a.kl_exact.isna().all() and b.kl_exact.notna().all()
+    steps = pd.read_csv(tmp_path / "traced" / "run" / "steps.csv")
+    assert not (tmp_path / "plain" / "run" / "steps.csv").exists()
+    per_epoch = steps.groupby("epoch")
+    assert (per_epoch.accepted.sum().values == b.off_iters.values).all()
+    assert (per_epoch.size().values == (b.off_iters + b.backtracks).values).all()
+    last = steps[steps.accepted].groupby("epoch").last()
+    np.testing.assert_allclose(last.kl.values, b.kl.values)
+    np.testing.assert_allclose(last.kl_exact.values, b.kl_exact.values)
+    assert ((b.log_std < 0) & (b.clip_share >= 0) & (b.clip_share <= 1)).all()
+
+
+def test_kept_checkpoints_hold_the_policy_of_their_epoch(tmp_path):
+    from hmepol_cli.rundir import load_checkpoint, resolve_checkpoint
+
+    trainer = tiny_trainer(tmp_path, "epochs=4", "checkpoint.keep_every=2")
+    trainer.train()
+    run = tmp_path / "run"
+    kept = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert kept == ["epoch_0002.pt", "epoch_0004.pt", "last.pt"]
+    assert load_checkpoint(resolve_checkpoint(f"{run}@2")[1])["epoch"] == 2
+    last, four = (load_checkpoint(run / "checkpoints" / n) for n in ("last.pt", "epoch_0004.pt"))
+    assert all(torch.equal(last["policy"][k], four["policy"][k]) for k in last["policy"])
+    from hmepol_cli.errors import RunDirError
+
+    with pytest.raises(RunDirError, match="it has: 2, 4"):
+        resolve_checkpoint(f"{run}@3")
+
+
+def test_fine_tuning_starts_from_a_kept_checkpoint_and_records_its_epoch(tmp_path):
+    import json
+
+    from hmepol_cli.finetune import finetune
+
+    tiny_trainer(tmp_path, "epochs=2", "checkpoint.keep_every=1").train()
+    run = tmp_path / "run"
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
+        cfg = compose(
+            config_name="finetune",
+            overrides=[f"init={run}@1", "epochs=1", "episodes=2", "horizon=20", "targets=1",
+                       "config=0", "progress=false", f"output_dir={tmp_path / 'ft'}"],
+        )  # fmt: skip
+    GlobalHydra.instance().clear()
+    out = finetune(cfg)
+    rows = pd.read_csv(out / "finetune.csv")
+    assert (rows.init_epoch == 1).all() and rows.init.str.endswith("@1").all()
+    assert json.loads((out / "run.json").read_text())["init_epoch"] == 1

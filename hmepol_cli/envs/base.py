@@ -130,6 +130,11 @@ class NavigationWorld:
         """The 2-D coordinates heatmaps draw: the position itself. (..., 2)"""
         return states
 
+    def action_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where actions are clipped, per dimension: (low (a,), high (a,))."""
+        high = torch.full((self.action_dim,), self.max_action, device=self.device, dtype=self.dtype)
+        return -high, high
+
     def state_bounds(self) -> tuple[list[float], list[float]]:
         """Lower and upper bound of each state index: the arena."""
         a = self.arena

@@ -344,6 +344,10 @@ class GymWorld:
         """The two indices ``env.projection`` of states, what heatmaps draw. (..., d) -> (..., 2)"""
         return states.index_select(-1, self._projection)
 
+    def action_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where actions are clipped, per dimension: the action space. (low (a,), high (a,))"""
+        return self.action_low, self.action_high
+
     def state_bounds(self) -> tuple[list[float], list[float]]:
         """The observation space's bounds per index (infinite where it is unbounded)."""
         return (

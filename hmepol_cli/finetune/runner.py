@@ -48,7 +48,7 @@ from hmepol_cli.seeding import get_device, make_generator, set_random_seed
 
 COLUMNS = [
     "epoch", "target", "config", "return", "success_rate", "kl", "init", "algo_init", "seed",
-    "config_name", "episode_length", "accepted", "seconds",
+    "config_name", "episode_length", "accepted", "init_epoch", "seconds",
 ]  # fmt: skip
 SCRATCH = "scratch"
 SCRATCH_ENV = {"name": "slope", "wind": 0.4, "edge": "slide"}  # init=none's world, if none named
@@ -65,6 +65,7 @@ class Plan:
     algo_init: str
     world: World
     tasks: dict[int, list[GoalTask] | list[RewardTask]]  # configuration -> its tasks
+    init_epoch: int | None = None  # epochs of pre-training the start holds
 
 
 # --------------------------------------------------------------------------- checks
@@ -123,10 +124,22 @@ def _is_scratch(init: object) -> bool:
     return init is None or str(init).strip().lower() in ("none", "null", "", SCRATCH)
 
 
-def initial_policy(
-    cfg: DictConfig, device: torch.device
-) -> tuple[Policy | None, DictConfig, str, str, int | None]:
-    """(pre-trained policy or None for scratch, env config, init label, algo_init, bptt).
+@dataclass
+class Start:
+    """Where a fine-tuning starts: the pre-trained policy (None: a fresh one per task) and what
+    its run fixes."""
+
+    policy: Policy | None
+    env: DictConfig  # name, wind, edge
+    init_label: str  # the checkpoint's path, or none
+    algo_init: str  # the pre-training algorithm, or scratch
+    bptt: int | None
+    init_epoch: int | None = None  # epochs of pre-training the checkpoint holds
+
+
+def initial_policy(cfg: DictConfig, device: torch.device) -> Start:
+    """The start of a fine-tuning: ``init`` is a run directory, a checkpoint file,
+    ``<run dir>@<epochs>`` (a checkpoint kept with ``checkpoint.keep_every``) or none.
 
     A pre-trained run gives its world and its ``policy.bptt``, unless the command changes them
     (``env=...``, ``wind=...``, ``policy.bptt=...``; ``policy.bptt`` null keeps the run's)."""
@@ -137,13 +150,15 @@ def initial_policy(
     chosen_bptt = cfg.policy.bptt
     if _is_scratch(cfg.init):
         env = OmegaConf.create({**SCRATCH_ENV, **override})
-        return None, env, "none", SCRATCH, parse_bptt("1" if chosen_bptt is None else chosen_bptt)
-    init_path = Path(str(cfg.init)).expanduser()
-    if not init_path.exists():
+        bptt = parse_bptt("1" if chosen_bptt is None else chosen_bptt)
+        return Start(None, env, "none", SCRATCH, bptt)
+    text = str(Path(str(cfg.init)).expanduser())
+    if not Path(text.rpartition("@")[0] if "@" in text else text).exists():
         raise ConfigError(
-            f"init={str(cfg.init)!r} does not exist; give a run directory, checkpoint file or none"
+            f"init={str(cfg.init)!r} does not exist; give a run directory, checkpoint file, "
+            "<run dir>@<epochs> or none"
         )
-    policy, run_cfg = load_trained_policy(init_path, device=device)
+    policy, run_cfg, epochs = load_trained_policy(text, device=device)
     run_env = OmegaConf.to_container(run_cfg.env, resolve=True) if "env" in run_cfg else {}
     run_env["edge"] = edge_rule(run_env)  # a run from before env.edge ran with the mirror
     if "name" in override and override["name"] != run_env.get("name"):
@@ -153,7 +168,8 @@ def initial_policy(
     run_bptt = OmegaConf.select(run_cfg, "policy.bptt", default="1")
     bptt = parse_bptt(run_bptt if chosen_bptt is None else chosen_bptt)
     algo = OmegaConf.select(run_cfg, "algo.name", default="unknown")
-    return policy, env, str(init_path.resolve()), str(algo), bptt
+    label = str(Path(text.partition("@")[0]).resolve()) + (f"@{epochs}" if "@" in text else "")
+    return Start(policy, env, label, str(algo), bptt, epochs)
 
 
 def _configurations(cfg: DictConfig, world: World) -> list[int]:
@@ -205,8 +221,14 @@ def check_finetune(cfg: DictConfig) -> Plan:
         if fresh.bptt is None:
             fresh.bptt = "1"
         validate_policy(fresh)
-    pretrained, env, init_label, algo_init, bptt = initial_policy(cfg, device)
-    settings = trpo_settings(cfg, bptt)
+    start = initial_policy(cfg, device)
+    pretrained, env, init_label, algo_init = (
+        start.policy,
+        start.env,
+        start.init_label,
+        start.algo_init,
+    )
+    settings = trpo_settings(cfg, start.bptt)
     if env.name not in ENVIRONMENTS:
         raise ConfigError(
             f"env={env.name!r} is not allowed; choose one of: {', '.join(ENVIRONMENTS)}"
@@ -224,7 +246,9 @@ def check_finetune(cfg: DictConfig) -> Plan:
                 "reward; leave goal at random (goal, targets and goal_size are for the 2-D worlds)"
             )
         tasks = {c: [RewardTask(c, int(cfg.horizon))] for c in _configurations(cfg, world)}
-        return Plan(settings, pretrained, env, init_label, algo_init, world, tasks)
+        return Plan(
+            settings, pretrained, env, init_label, algo_init, world, tasks, start.init_epoch
+        )
     try:
         tasks = {
             c: make_tasks(
@@ -240,7 +264,7 @@ def check_finetune(cfg: DictConfig) -> Plan:
         }
     except TargetError as error:
         raise ConfigError(str(error)) from None
-    return Plan(settings, pretrained, env, init_label, algo_init, world, tasks)
+    return Plan(settings, pretrained, env, init_label, algo_init, world, tasks, start.init_epoch)
 
 
 def _output_dir(cfg: DictConfig) -> Path:
@@ -273,6 +297,7 @@ def finetune(cfg: DictConfig) -> Path:
             wind=plan.env.get("wind") if plan.env.name == "corridor" else None,
             algo=plan.algo_init,
             init=plan.init_label,
+            init_epoch=plan.init_epoch,
             seed=int(cfg.seed),
             epochs=int(cfg.epochs),
             config_names=list(plan.world.configuration_names),
@@ -352,6 +377,7 @@ def _row(
         "config_name": world.configuration_names[config],
         "episode_length": float(rollout.lengths.float().mean()),
         "accepted": step.accepted,
+        "init_epoch": math.nan if plan.init_epoch is None else plan.init_epoch,
     }
 
 
