@@ -62,8 +62,12 @@ def _compose(overrides: list[str]):
     return cfg
 
 
+DROPPED: list[str] = []  # --drop: columns left out (to compare with a commit that lacked them)
+
+
 def _numbers(frame: pd.DataFrame) -> bytes:
-    kept = frame.drop(columns=[c for c in TIME_COLUMNS if c in frame.columns])
+    gone = [*TIME_COLUMNS, *DROPPED]
+    kept = frame.drop(columns=[c for c in gone if c in frame.columns])
     buffer = io.StringIO()
     kept.to_csv(buffer, index=False, float_format="%.17g")
     return buffer.getvalue().encode()
@@ -118,7 +122,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("extra", nargs="*", help="overrides applied to every training case")
     parser.add_argument("--quick", action="store_true", help="one policy per algorithm")
+    parser.add_argument("--drop", default="", help="columns to leave out, comma-separated")
     ns = parser.parse_args(argv)
+    DROPPED.extend(c for c in ns.drop.split(",") if c)
     torch.set_num_threads(1)
     cases = [
         (world, algo, policy)
