@@ -171,7 +171,7 @@ def epoch(
     healthy = [i for i in range(len(members)) if i not in broken]
     if broken:
         keep = torch.tensor(healthy, dtype=torch.long, device=world.device)
-        rollout, rows = _rollout_rows(rollout, keep), rows.index_select(0, keep)
+        rollout, rows = rollout.rows(keep), rows.index_select(0, keep)
     t1 = time.perf_counter()
     stats = iter(_update(world, population, optimizer, settings, rollout, rows, t0, t1)
                  if healthy else [])  # fmt: skip
@@ -465,16 +465,6 @@ def _broken_rows(rollout: Rollout) -> dict[int, list[str]]:
         for i in range(finite.shape[1])
         if not finite[:, i].all()
     }
-
-
-def _rollout_rows(rollout: Rollout, rows: torch.Tensor) -> Rollout:
-    """The members of a rollout in ``rows``."""
-    return Rollout(
-        **{
-            k: v.index_select(0, rows) if isinstance(v, torch.Tensor) else v
-            for k, v in vars(rollout).items()
-        }
-    )
 
 
 def _broken_stats(names: list[str], configurations: np.ndarray) -> EpochStats:

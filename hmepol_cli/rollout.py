@@ -2,41 +2,31 @@
 
 Storage is allocated up front with shape (S, N, T, ...): members, trajectories, steps (the
 estimators group particles by trajectory). Histories reset to h'_0 = 0 at every trajectory
-start. Member s's randomness comes from its own generator, drawn up front in a fixed order
-(start positions, action noise (N, T, a), world noise (N, T, k)), so it does not depend on the
-other members or on how the steps are computed: member s of a population sees exactly the
-random numbers of a run of its own.
+start. Member s's randomness comes from its own generator, drawn up front by the world in a
+fixed order (:meth:`~hmepol_cli.envs.world.World.begin`), so it does not depend on the other
+members or on how the steps are computed: member s of a population sees exactly the random
+numbers of a run of its own.
 
-One step loop serves every world: a *transition* maps (t, states, actions) to the next states
-(and, for a Gymnasium world, the environment's rewards and which episodes it ended). The 2-D
-worlds step as tensors from noise drawn up front (and on a GPU replay as a CUDA graph); a
-Gymnasium world (:class:`~hmepol_cli.envs.gym_world.GymWorld`) steps its vector environment, its
-episodes reset with seeds drawn from each member's generator (seeds (N,), then action noise).
+One step loop serves every world (:class:`~hmepol_cli.envs.world.World`): the world's episodes
+map (t, states, actions) to a :class:`~hmepol_cli.envs.world.Transition`. A world whose steps
+are tensor operations only (the 2-D worlds) replays on a GPU as one captured CUDA graph.
+Episodes may end before T when the environment ends them (Gymnasium worlds) or when
+``ends_episode`` says so (a fine-tuning goal); ``until_ended`` stops the rollout once all have.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, fields, replace
 
 import torch
 
-from hmepol_cli.envs.base import NavigationWorld
-from hmepol_cli.envs.gym_world import GymWorld
+from hmepol_cli.envs.world import Episodes, World
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.population import PolicyPopulation
 
-if TYPE_CHECKING:
-    from hmepol_cli.finetune.task import GoalTask, RewardTask
-
-World = NavigationWorld | GymWorld
-# (t, states (S', N, d), actions (S', N, a)) -> (next states (S', N, d), rewards (S', N) or None,
-# ended (S', N) bool or None: the environment ended the episode on this step)
-Transition = Callable[
-    [int, torch.Tensor, torch.Tensor],
-    tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None],
-]
+# positions (S' N, d) -> (S' N,) bool: the episode ends on reaching this state (a goal)
+EndTest = Callable[[torch.Tensor], torch.Tensor]
 
 
 @dataclass
@@ -50,15 +40,10 @@ class Rollout:
     configurations: torch.Tensor  # (S, N) long: configuration of each trajectory
     means: torch.Tensor  # (S, N, T, a): the sampling policy's mean action at each step
     log_std: torch.Tensor  # (S, a): the sampling policy's log-std
-    # Goal tasks and Gymnasium worlds (None otherwise): steps taken before the episode ended;
-    # in fine-tuning the trajectories may be shorter than the task's horizon T.
-    alive: torch.Tensor | None = None  # (S, N, T) bool
-    success: torch.Tensor | None = None  # (S, N, T) bool, goal tasks: it reached the target
-    horizon: int | None = None  # the task's T
-    # Gymnasium worlds: the environment's reward of each step (0 after the end), and the step the
-    # environment ended the episode on (terminated or truncated).
-    reward: torch.Tensor | None = None  # (S, N, T)
-    ended: torch.Tensor | None = None  # (S, N, T) bool
+    # Episodes that can end before T (None: every step of every trajectory was taken):
+    alive: torch.Tensor | None = None  # (S, N, T) bool: step t was taken while it ran
+    reward: torch.Tensor | None = None  # (S, N, T): the environment's reward (0 after the end)
+    ended: torch.Tensor | None = None  # (S, N, T) bool: the episode ended on step t
 
     @property
     def particles(self) -> torch.Tensor:
@@ -72,46 +57,20 @@ class Rollout:
 
     def member(self, s: int) -> Rollout:
         """Member s's trajectories, without the member dimension: (N, T, ...)."""
-        return Rollout(
-            **{k: v[s] if isinstance(v, torch.Tensor) else v for k, v in vars(self).items()}
-        )
+        return self._each(lambda k, v: v[s])
+
+    def rows(self, rows: torch.Tensor) -> Rollout:
+        """The members in ``rows`` (R,) long."""
+        return self._each(lambda k, v: v.index_select(0, rows))
 
     def episodes(self, index: torch.Tensor) -> Rollout:
         """Some trajectories of a member's rollout (no member dimension). index (n,) long"""
-        return Rollout(
-            **{
-                k: v[index] if isinstance(v, torch.Tensor) and k != "log_std" else v
-                for k, v in vars(self).items()
-            }
-        )
+        return self._each(lambda k, v: v if k == "log_std" else v[index])
 
-    # -- fine-tuning tasks
-    @property
-    def rewards(self) -> torch.Tensor:
-        """The environment's reward (Gymnasium worlds), or 1 on the step an episode reaches the
-        target of a goal task, 0 otherwise. (..., T)"""
-        if self.reward is not None:
-            return self.reward
-        return self.success.to(self.states.dtype)
-
-    @property
-    def ends(self) -> torch.Tensor:
-        """True on the step an episode ended: reached its target, or the environment ended it.
-        (..., T) bool"""
-        return self.ended if self.ended is not None else self.success
-
-    @property
-    def returns(self) -> torch.Tensor:
-        """Undiscounted return of each episode. (..., N)"""
-        return (self.rewards * self.alive).sum(dim=-1)
-
-    @property
-    def succeeded(self) -> torch.Tensor:
-        return self.success.any(dim=-1)
-
-    @property
-    def lengths(self) -> torch.Tensor:
-        return self.alive.sum(dim=-1)
+    def _each(self, part: Callable[[str, torch.Tensor], torch.Tensor]) -> Rollout:
+        """The same kind of rollout with ``part`` of every tensor."""
+        tensors = {k: part(k, v) for k, v in vars(self).items() if isinstance(v, torch.Tensor)}
+        return replace(self, **tensors)
 
 
 def draw_configurations(
@@ -124,35 +83,19 @@ def draw_configurations(
 
 @dataclass
 class EpisodeLog:
-    """What an episodic rollout records besides states (goal tasks, Gymnasium worlds), (S', N, T).
-
-    ``reached``: a goal task's test, whose first success ends the episode; ``stop``: end the
-    rollout once every episode has ended (fine-tuning), instead of running all T steps (the
-    particles of pre-training)."""
+    """Which steps each episode took, and how it ended, (S', N, T)."""
 
     alive: torch.Tensor
-    success: torch.Tensor | None = None
     reward: torch.Tensor | None = None
     ended: torch.Tensor | None = None
-    reached: Callable[[torch.Tensor], torch.Tensor] | None = None
-    stop: bool = False
 
-    def record(
-        self,
-        t: int,
-        running: torch.Tensor,
-        position: torch.Tensor,
-        reward: torch.Tensor | None,
-        ended: torch.Tensor | None,
-    ) -> torch.Tensor:
+    def record(self, t: int, running: torch.Tensor, step: _Step) -> torch.Tensor:
         """Write step t; -> the episodes still running after it. (S', N) bool"""
         self.alive[:, :, t] = running
-        if self.reached is not None:  # a goal task: reaching the target ends the episode
-            s, n = running.shape
-            ended = self.reached(position.flatten(0, 1)).view(s, n)
-            self.success[:, :, t] = running & ended
         if self.reward is not None:
+            reward = step.reward
             self.reward[:, :, t] = torch.where(running, reward, torch.zeros_like(reward))
+        ended = step.ended
         if self.ended is not None:
             self.ended[:, :, t] = running & ended
         return running & ~ended
@@ -160,6 +103,15 @@ class EpisodeLog:
     def truncate(self, steps: int) -> EpisodeLog:
         cut = {k: v[:, :, :steps] for k, v in vars(self).items() if isinstance(v, torch.Tensor)}
         return EpisodeLog(**{**vars(self), **cut})
+
+
+@dataclass
+class _Step:
+    """What the step loop needs of a transition: the next states, the reward, the ends."""
+
+    states: torch.Tensor
+    reward: torch.Tensor | None
+    ended: torch.Tensor
 
 
 def collect(
@@ -171,35 +123,26 @@ def collect(
     generators: Sequence[torch.Generator],
     deterministic: bool = False,
     graphs: dict | None = None,
-    task: GoalTask | RewardTask | None = None,
+    ends_episode: EndTest | None = None,
+    until_ended: bool = False,
 ) -> Rollout:
     """Run one trajectory per entry of ``configurations`` (S', N) for ``horizon`` steps, member i of
     the selection ``members`` (None: all) acting in row i with randomness from generators[i].
 
-    ``task`` (fine-tuning): a goal task, whose episodes end on the step they reach the target, or
-    a Gymnasium world's own reward and termination; the rollout stops once every episode has
-    ended. ``graphs``: on a GPU, a cache in which the T steps of a 2-D world are captured once as a
-    CUDA graph and replayed for every later rollout of the same shape (one launch instead of ~100
-    a step); a Gymnasium world steps outside torch and is never captured.
+    ``ends_episode``: a state that ends its episode (a fine-tuning goal); ``until_ended``: stop
+    the rollout once every episode has ended (fine-tuning) instead of running all T steps (the
+    particles of pre-training). ``graphs``: on a GPU, a cache in which the T steps of a capturable
+    world are captured once as a CUDA graph and replayed for every later rollout of the same
+    shape (one launch instead of ~100 a step).
     """
-    if isinstance(world, GymWorld):
-        return _collect_gym(
-            world, population, members, configurations, horizon, generators, deterministic, task
-        )
     s, n = configurations.shape
-    device, dtype = world.device, world.dtype
     with torch.inference_mode():
-        starts, action_noise, world_noise = [], [], []
-        for i, generator in enumerate(generators):
-            kw = dict(device=device, dtype=dtype, generator=generator)
-            starts.append(world.reset(configurations[i], generator))
-            action_noise.append(torch.randn(n, horizon, world.action_dim, **kw))
-            world_noise.append(torch.rand(n, horizon, world.noise_size, **kw))
-        position = torch.stack(starts)  # (S', N, d)
-        action_noise = torch.stack(action_noise)  # (S', N, T, a)
-        world_noise = torch.stack(world_noise).flatten(0, 1)  # (S' N, T, k)
-    log_std = _log_std(population, members)
-    if graphs is not None and task is None and device.type == "cuda":
+        episodes, action_noise = world.begin(configurations, horizon, generators)
+    log_std = population.params["log_std"].detach().clone()
+    log_std = log_std if members is None else log_std.index_select(0, members)
+    records = world.episodes_end or ends_episode is not None
+    capture = graphs is not None and world.capturable and world.device.type == "cuda"
+    if capture and not records:
         key = (
             id(world),
             id(population),
@@ -211,119 +154,32 @@ def collect(
             tuple(p.data_ptr() for p in population.params.values()),
         )
         if key not in graphs:
-            graphs[key] = CapturedSteps(world, population, members, s, n, horizon, deterministic)
-        return graphs[key].run(position, action_noise, world_noise, configurations, log_std)
-    episodes = None
-    if task is not None:
-        alive = torch.zeros(s, n, horizon, dtype=torch.bool, device=device)
-        success = torch.zeros_like(alive)
-        episodes = EpisodeLog(alive, success=success, reached=task.reached, stop=True)
-    transition = world_transition(world, configurations.flatten(), world_noise)
-    return _run_steps(
-        world, population, members, configurations, position, action_noise, transition,
-        horizon, deterministic, log_std, episodes, task,
-    )  # fmt: skip
-
-
-def _collect_gym(
-    world: GymWorld,
-    population: PolicyPopulation,
-    members: torch.Tensor | None,
-    configurations: torch.Tensor,
-    horizon: int,
-    generators: Sequence[torch.Generator],
-    deterministic: bool,
-    task: RewardTask | None,
-) -> Rollout:
-    """The rollout in a Gymnasium world: S' x N sub-environments of one vector environment."""
-    s, n = configurations.shape
-    with torch.inference_mode():
-        seeds, action_noise = [], []
-        for generator in generators:
-            seeds.append(world.draw_seeds(n, generator))
-            action_noise.append(
-                torch.randn(
-                    n,
-                    horizon,
-                    world.action_dim,
-                    device=world.device,
-                    dtype=world.dtype,
-                    generator=generator,
-                )  # fmt: skip
+            graphs[key] = CapturedSteps(
+                world, population, members, episodes, horizon, deterministic
             )
-        action_noise = torch.stack(action_noise)  # (S', N, T, a)
-        episodes = world.episodes((s, n))
-        position = episodes.start(configurations, torch.stack(seeds))  # (S', N, d)
-    alive = torch.zeros(s, n, horizon, dtype=torch.bool, device=world.device)
-    log = EpisodeLog(
-        alive,
-        reward=torch.zeros(s, n, horizon, device=world.device, dtype=world.dtype),
-        ended=torch.zeros_like(alive),
-        stop=task is not None,
-    )
-    return _run_steps(
-        world, population, members, configurations, position, action_noise, episodes.step,
-        horizon, deterministic, _log_std(population, members), log, task,
-    )  # fmt: skip
-
-
-def _log_std(population: PolicyPopulation, members: torch.Tensor | None) -> torch.Tensor:
-    log_std = population.params["log_std"].detach().clone()
-    return log_std if members is None else log_std.index_select(0, members)
-
-
-def _run_steps(
-    world: World,
-    population: PolicyPopulation,
-    members: torch.Tensor | None,
-    configurations: torch.Tensor,
-    position: torch.Tensor,
-    action_noise: torch.Tensor,
-    transition: Transition,
-    horizon: int,
-    deterministic: bool,
-    log_std: torch.Tensor,
-    episodes: EpisodeLog | None,
-    task: GoalTask | RewardTask | None,
-) -> Rollout:
-    """Storage, the step loop, and the Rollout (cut where every episode of a task ended)."""
-    s, n = configurations.shape
+        return graphs[key].run(episodes, action_noise, configurations, log_std)
+    log = None
+    if records:
+        alive = torch.zeros(s, n, horizon, dtype=torch.bool, device=world.device)
+        reward = None
+        if world.episodes_end:
+            reward = torch.zeros(s, n, horizon, device=world.device, dtype=world.dtype)
+        log = EpisodeLog(alive, reward=reward, ended=torch.zeros_like(alive))
     buffers = _storage(world, population, s, n, horizon)
-    steps = _steps(population, members, position, action_noise, transition, deterministic,
-                   *buffers, episodes=episodes)  # fmt: skip
+    steps = _steps(population, members, episodes, action_noise, deterministic, *buffers,
+                   log=log, ends_episode=ends_episode, until_ended=until_ended)  # fmt: skip
     states, actions, histories, log_probs, means = buffers
-    if steps < horizon:  # every episode of the fine-tuning task ended early
+    if steps < horizon:  # every episode ended early
         states, actions, histories = (
             states[:, :, : steps + 1],
             actions[:, :, :steps],
             histories[:, :, :steps],
         )
         log_probs, means = log_probs[:, :, :steps], means[:, :, :steps]
-        episodes = episodes.truncate(steps)
-    record = {}
-    if episodes is not None:
-        record = dict(alive=episodes.alive, success=episodes.success, reward=episodes.reward,
-                      ended=episodes.ended)  # fmt: skip
-    return Rollout(
-        states, actions, histories, log_probs, configurations, means, log_std,
-        horizon=task.horizon if task is not None else None, **record,
-    )  # fmt: skip
-
-
-def world_transition(
-    world: NavigationWorld, flat_configs: torch.Tensor, world_noise: torch.Tensor
-) -> Transition:
-    """A 2-D world's step for every agent at once, with the noise of step t from
-    ``world_noise`` (S' N, T, k); flat_configs (S' N,)."""
-
-    def transition(t: int, position: torch.Tensor, action: torch.Tensor):
-        s, n = position.shape[:2]
-        moved = world.step(
-            position.flatten(0, 1), action.flatten(0, 1), flat_configs, noise=world_noise[:, t]
-        )
-        return moved.view(s, n, -1), None, None
-
-    return transition
+        log = log.truncate(steps)
+    episode_fields = {} if log is None else vars(log)
+    return Rollout(states, actions, histories, log_probs, configurations, means, log_std,
+                   **episode_fields)  # fmt: skip
 
 
 def _storage(world: World, population: PolicyPopulation, s: int, n: int, horizon: int):
@@ -342,20 +198,22 @@ def _storage(world: World, population: PolicyPopulation, s: int, n: int, horizon
 def _steps(
     population: PolicyPopulation,
     members: torch.Tensor | None,
-    position: torch.Tensor,
+    episodes: Episodes,
     action_noise: torch.Tensor,
-    transition: Transition,
     deterministic: bool,
     states: torch.Tensor,
     actions: torch.Tensor,
     histories: torch.Tensor,
     log_probs: torch.Tensor,
     means: torch.Tensor,
-    episodes: EpisodeLog | None = None,
+    log: EpisodeLog | None = None,
+    ends_episode: EndTest | None = None,
+    until_ended: bool = False,
 ) -> int:
     """The T steps of a rollout, written into the storage. -> the steps taken"""
     s, n, horizon = actions.shape[:3]
     with torch.inference_mode():  # no autograd bookkeeping on the ~100 small ops of each step
+        position = episodes.start
         history = population.initial_history(s, n)
         running = torch.ones(s, n, dtype=torch.bool, device=position.device)
         states[:, :, 0] = position
@@ -363,52 +221,56 @@ def _steps(
             histories[:, :, t] = history
             noise = None if deterministic else action_noise[:, :, t]
             action, log_prob, history, mean = population.act(members, position, history, noise)
-            position, reward, ended = transition(t, position, action)
+            moved = episodes.step(t, position, action)
+            position = moved.states
             actions[:, :, t], log_probs[:, :, t], means[:, :, t] = action, log_prob, mean
             states[:, :, t + 1] = position
-            if episodes is not None:
-                running = episodes.record(t, running, position, reward, ended)
-                if episodes.stop and not running.any():  # every episode ended
+            if log is not None:
+                running = log.record(t, running, _ends(moved, position, ends_episode))
+                if until_ended and not running.any():  # every episode ended
                     return t + 1
     return horizon
 
 
+def _ends(moved, position: torch.Tensor, ends_episode: EndTest | None) -> _Step:
+    """Which episodes end on this step: the environment's ends, or a goal's."""
+    ended = moved.ended
+    if ends_episode is not None:
+        s, n = position.shape[:2]
+        reached = ends_episode(position.flatten(0, 1)).view(s, n)
+        ended = reached if ended is None else ended | reached
+    if ended is None:
+        ended = torch.zeros(position.shape[:2], dtype=torch.bool, device=position.device)
+    return _Step(position, moved.reward, ended)
+
+
 class CapturedSteps:
-    """The T steps of a rollout of one shape in a 2-D world as a CUDA graph, replayed on fresh
-    inputs.
+    """The T steps of a rollout of one shape in a capturable world as a CUDA graph, replayed on
+    fresh inputs.
 
     The graph reads the population's parameters from their storage, which the optimizer
-    updates in place, so a replay always acts with the current policies."""
+    updates in place, so a replay always acts with the current policies; it reads the episodes'
+    tensors (start states, world noise) from static copies that every replay refills."""
 
     def __init__(
         self,
-        world: NavigationWorld,
+        world: World,
         population: PolicyPopulation,
         members: torch.Tensor | None,
-        s: int,
-        n: int,
+        episodes: Episodes,
         horizon: int,
         deterministic: bool,
     ) -> None:
+        s, n = episodes.start.shape[:2]
         kw = dict(device=world.device, dtype=world.dtype)
-        self.position = torch.zeros(s, n, world.state_dim, **kw)
         self.action_noise = torch.zeros(s, n, horizon, world.action_dim, **kw)
-        self.world_noise = torch.zeros(s * n, horizon, world.noise_size, **kw)
-        self.configurations = torch.zeros(s * n, dtype=torch.long, device=world.device)
+        self.episodes = _static_copy(episodes)
         self.outputs = _storage(world, population, s, n, horizon)
         members = None if members is None else members.clone()
-        transition = world_transition(world, self.configurations, self.world_noise)
 
         def body() -> None:
-            _steps(
-                population,
-                members,
-                self.position,
-                self.action_noise,
-                transition,
-                deterministic,
-                *self.outputs,
-            )
+            _steps(population, members, self.episodes, self.action_noise, deterministic,
+                   *self.outputs)  # fmt: skip
 
         side = torch.cuda.Stream()  # warm up (handles, allocator) away from the capture
         side.wait_stream(torch.cuda.current_stream())
@@ -421,20 +283,32 @@ class CapturedSteps:
 
     def run(
         self,
-        position: torch.Tensor,
+        episodes: Episodes,
         action_noise: torch.Tensor,
-        world_noise: torch.Tensor,
         configurations: torch.Tensor,
         log_std: torch.Tensor,
     ) -> Rollout:
         with torch.no_grad():
-            self.position.copy_(position)
+            for f in fields(self.episodes):
+                value = getattr(self.episodes, f.name)
+                if isinstance(value, torch.Tensor):
+                    value.copy_(getattr(episodes, f.name))
             self.action_noise.copy_(action_noise)
-            self.world_noise.copy_(world_noise)
-            self.configurations.copy_(configurations.flatten())
         self.graph.replay()
         states, actions, histories, log_probs, means = (t.clone() for t in self.outputs)
         return Rollout(states, actions, histories, log_probs, configurations, means, log_std)
+
+
+def _static_copy(episodes: Episodes) -> Episodes:
+    """The same episodes with every tensor field in fresh storage a graph can read from."""
+    return type(episodes)(
+        **{
+            f.name: getattr(episodes, f.name).clone()
+            if isinstance(getattr(episodes, f.name), torch.Tensor)
+            else getattr(episodes, f.name)
+            for f in fields(episodes)
+        }
+    )
 
 
 def collect_single(
@@ -444,7 +318,8 @@ def collect_single(
     horizon: int,
     generator: torch.Generator,
     deterministic: bool = False,
-    task: GoalTask | RewardTask | None = None,
+    ends_episode: EndTest | None = None,
+    until_ended: bool = False,
 ) -> Rollout:
     """The rollout of one policy (a population of one, with a copy of its weights): configurations
     (N,) -> a Rollout of shapes (N, T, ...), without the member dimension."""
@@ -457,18 +332,7 @@ def collect_single(
         horizon,
         [generator],
         deterministic,
-        task=task,
+        ends_episode=ends_episode,
+        until_ended=until_ended,
     )
     return rollout.member(0)
-
-
-def collect_episodes(
-    world: World,
-    policy: Policy,
-    task: GoalTask | RewardTask,
-    episodes: int,
-    generator: torch.Generator,
-) -> Rollout:
-    """``episodes`` episodes of one fine-tuning task, stepped together. (N, T, ...)"""
-    configurations = torch.full((episodes,), task.config, dtype=torch.long, device=world.device)
-    return collect_single(world, policy, configurations, task.horizon, generator, task=task)

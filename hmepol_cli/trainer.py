@@ -164,8 +164,7 @@ class Trainer:
                     algo=self.cfg.algo.name,
                     policy=self.cfg.policy.name,
                     seed=int(member.cfg.seed),
-                    wind=getattr(self.world, "wind", None),  # worlds with a wind (corridor)
-                    env_id=getattr(self.world, "env_id", None),  # a Gymnasium world's id
+                    **{"wind": None, "env_id": None, **self.world.facts()},
                     epochs=int(self.cfg.epochs),
                     epochs_done=int(member.directory.info().get("epochs_done", 0)),
                     config_names=list(self.world.configuration_names),

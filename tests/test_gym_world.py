@@ -19,6 +19,7 @@ from hmepol_cli.cli import register_configs  # noqa: F401  (schema and resolvers
 from hmepol_cli.envs import ENVIRONMENTS, GymWorld, make_world
 from hmepol_cli.errors import ConfigError
 from hmepol_cli.evaluation import rollout_positions
+from hmepol_cli.finetune.task import collect_episodes
 from hmepol_cli.mepol import _live
 from hmepol_cli.population import PolicyPopulation
 from hmepol_cli.rollout import collect, collect_single, draw_configurations
@@ -323,9 +324,10 @@ def test_finetuning_uses_the_environments_reward_and_termination(tmp_path):
     assert (rows.episode_length <= 10).all()
     # The returns of a rollout by hand: rewards of the live steps only.
     world = plan.world
-    policy, starts = policy_of(world, log_std=0.0), torch.zeros(6, dtype=torch.long)
-    rollout = collect_single(world, policy, starts, 10, torch.Generator().manual_seed(0),
-                             task=RewardTask(0, 10))  # fmt: skip
+    policy = policy_of(world, log_std=0.0)
+    rollout = collect_episodes(
+        world, policy, RewardTask(0, 10), 6, torch.Generator().manual_seed(0)
+    )
     x = rollout.states[:, 1:, 0]
     by_hand = (x * rollout.alive).sum(-1)
     torch.testing.assert_close(rollout.returns, by_hand)

@@ -29,12 +29,11 @@ import itertools
 import torch
 
 from hmepol_cli.envs.cue import GOALS, MEMORY_HORIZON, CueCorridorWorld
-from hmepol_cli.finetune.task import GoalTask
+from hmepol_cli.finetune.task import GoalTask, TaskRollout, collect_episodes
 from hmepol_cli.finetune.trpo import TRPO, TRPOSettings
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
-from hmepol_cli.rollout import Rollout, collect_episodes
 
 EPOCHS = 30
 EPISODES = 128  # per epoch, half in each configuration
@@ -61,7 +60,7 @@ def recursive_policy(seed: int = SEED) -> RecursivePolicy:
     )
 
 
-def concatenate(rollouts: list[Rollout]) -> Rollout:
+def concatenate(rollouts: list[TaskRollout]) -> TaskRollout:
     """One rollout of the episodes of all ``rollouts``, padded to the longest (masked steps)."""
     steps = max(r.alive.shape[1] for r in rollouts)
 
@@ -70,10 +69,11 @@ def concatenate(rollouts: list[Rollout]) -> Rollout:
         return torch.cat((x, torch.zeros(shape, dtype=x.dtype)), dim=1)
 
     fields = {"states": torch.cat([padded(r.states, steps + 1) for r in rollouts])}
-    for key in ("actions", "means", "histories", "log_probs", "alive", "success"):
+    for key in ("actions", "means", "histories", "log_probs", "alive", "ended"):
         fields[key] = torch.cat([padded(getattr(r, key), steps) for r in rollouts])
     fields["configurations"] = torch.cat([r.configurations for r in rollouts])
-    return Rollout(**fields, log_std=rollouts[0].log_std, horizon=rollouts[0].horizon)
+    return TaskRollout(**fields, log_std=rollouts[0].log_std, horizon=rollouts[0].horizon,
+                       goal=True)  # fmt: skip
 
 
 def success_rates(

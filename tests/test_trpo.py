@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from hmepol_cli.envs.base import Box, NavigationWorld
 from hmepol_cli.errors import ConfigError
 from hmepol_cli.finetune.runner import finetune, trpo_settings
-from hmepol_cli.finetune.task import GoalTask, draw_target, make_tasks
+from hmepol_cli.finetune.task import GoalTask, collect_episodes, draw_target, make_tasks
 from hmepol_cli.finetune.trpo import (
     TRPO,
     TRPOSettings,
@@ -27,7 +27,6 @@ from hmepol_cli.finetune.trpo import (
 )
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
-from hmepol_cli.rollout import collect_episodes
 from hmepol_cli.rundir import (
     CHECKPOINT,
     CONFIG,

@@ -34,11 +34,14 @@ epoch's worth at once, so a run's random stream does not depend on how it is bat
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from hmepol_cli.envs.world import Transition, action_noise
 
 MAX_ACTION = 0.2  # per-axis action bound of every world (thesis 5.1)
 PUSH_BACK_NOISE = 2  # uniforms per agent and step for the push-back (one per axis)
@@ -75,6 +78,9 @@ class NavigationWorld:
     """
 
     name: str = "world"
+    maps = True  # walls on an arena: pictures draw it, fine-tuning draws goals in free space
+    episodes_end = False  # every trajectory runs T steps
+    capturable = True  # a step is tensor operations only
     state_dim: int = 2
     action_dim: int = 2
     max_action: float = MAX_ACTION
@@ -120,6 +126,10 @@ class NavigationWorld:
 
     def close(self) -> None:
         """Release what the world holds outside tensors (nothing, for these worlds)."""
+
+    def facts(self) -> dict[str, object]:
+        """What run.json records about the world beyond its configurations."""
+        return {"edge": self.edge}
 
     # ------------------------------------------------------------------ states
     def entropy_features(self, states: torch.Tensor) -> torch.Tensor:
@@ -226,6 +236,26 @@ class NavigationWorld:
         return torch.where(
             free.any(dim=1, keepdim=True), chosen, self._start_fallback[configurations]
         )
+
+    def begin(
+        self, configurations: torch.Tensor, horizon: int, generators: Sequence[torch.Generator]
+    ) -> tuple[NavigationEpisodes, torch.Tensor]:
+        """S' x N episodes in ``configurations`` (S', N). Member i draws from generators[i], in
+        this order: its start positions, its action noise (N, T, a), its world noise (N, T, k)
+        (the push-back's and the force's uniforms of every step)."""
+        n = configurations.shape[1]
+        starts, actions, noise = [], [], []
+        for i, generator in enumerate(generators):
+            starts.append(self.reset(configurations[i], generator))
+            actions.append(action_noise(n, horizon, self, generator))
+            noise.append(
+                torch.rand(n, horizon, self.noise_size, device=self.device, dtype=self.dtype,
+                           generator=generator)
+            )  # fmt: skip
+        episodes = NavigationEpisodes(
+            self, torch.stack(starts), configurations.flatten(), torch.stack(noise).flatten(0, 1)
+        )
+        return episodes, torch.stack(actions)
 
     def force(
         self, positions: torch.Tensor, configurations: torch.Tensor, noise: torch.Tensor
@@ -391,6 +421,23 @@ class NavigationWorld:
             return min(self.free_area(c) for c in range(self.n_configurations))
         mask = self.free_mask(config)
         return float(mask.mean()) * self.arena.area
+
+
+@dataclass
+class NavigationEpisodes:
+    """S' x N episodes of a 2-D world, with every step's world noise drawn up front."""
+
+    world: NavigationWorld
+    start: torch.Tensor  # (S', N, 2): s_0
+    configurations: torch.Tensor  # (S' N,)
+    noise: torch.Tensor  # (S' N, T, k): the uniforms each step consumes
+
+    def step(self, t: int, states: torch.Tensor, actions: torch.Tensor) -> Transition:
+        s, n = states.shape[:2]
+        moved = self.world.step(
+            states.flatten(0, 1), actions.flatten(0, 1), self.configurations, noise=self.noise[:, t]
+        )
+        return Transition(moved.view(s, n, -1))
 
 
 def edge_rule(env_cfg) -> str:

@@ -121,6 +121,9 @@ class CorridorWorld(NavigationWorld):
     def describe(self, config: int) -> str:
         return f"wind {self.wind:g} in the corridor only" if self.wind > 0 else "no wind"
 
+    def facts(self) -> dict[str, object]:
+        return {**super().facts(), "wind": self.wind}
+
     def arrow_candidates(self, config: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], float]:
         """An arrow every 0.75: one in every stub, four across the ring."""
         if self.wind == 0:

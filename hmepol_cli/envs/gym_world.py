@@ -43,6 +43,7 @@ import torch
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 from omegaconf import OmegaConf
 
+from hmepol_cli.envs.world import Transition, action_noise
 from hmepol_cli.errors import ConfigError
 
 SEED_BOUND = 2**31 - 1  # episode seeds are drawn in [0, SEED_BOUND)
@@ -179,29 +180,29 @@ class SlotPool:
 
 
 class GymEpisodes:
-    """S' x N episodes in progress, one per slot of a pool, stepped together.
+    """S' x N episodes in progress, one per slot of a pool, stepped together (the world's
+    :class:`~hmepol_cli.envs.world.Episodes`).
 
     An episode the environment ends keeps its last state (and gets reward 0) for the remaining
     steps; once every episode has ended the environments are no longer stepped."""
 
-    def __init__(self, world: GymWorld, pool: SlotPool, shape: tuple[int, int]) -> None:
-        self.world, self.pool, self.shape = world, pool, shape
+    def __init__(
+        self, world: GymWorld, pool: SlotPool, configurations: torch.Tensor, seeds: torch.Tensor
+    ) -> None:
+        """configurations, seeds (S', N): each episode's configuration and reset seed."""
+        self.world, self.pool, self.shape = world, pool, tuple(configurations.shape)
         self.running = np.ones(pool.m, dtype=bool)
+        observations = pool.reset(configurations.flatten().tolist(), seeds.flatten().tolist())
+        self.start = world.as_states(observations).view(*self.shape, -1)  # (S', N, d)
 
-    def start(self, configurations: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
-        """configurations, seeds (S', N) -> initial observations (S', N, d)."""
-        observations = self.pool.reset(configurations.flatten().tolist(), seeds.flatten().tolist())
-        return self.world.as_states(observations).view(*self.shape, -1)
-
-    def step(
-        self, t: int, states: torch.Tensor, actions: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def step(self, t: int, states: torch.Tensor, actions: torch.Tensor) -> Transition:
         """(S', N, d) states, (S', N, a) actions -> next states (S', N, d), rewards (S', N),
         ended (S', N) bool (the environment ended the episode on this step)."""
         world = self.world
         if not self.running.any():
             zeros = torch.zeros(self.shape, device=world.device, dtype=world.dtype)
-            return states, zeros, torch.ones(self.shape, dtype=torch.bool, device=world.device)
+            ended = torch.ones(self.shape, dtype=torch.bool, device=world.device)
+            return Transition(states, zeros, ended)
         clipped = actions.flatten(0, 1).clamp(world.action_low, world.action_high)
         observations, rewards, ended = self.pool.step(
             clipped.to("cpu").numpy().astype(world.action_space.dtype, copy=False)
@@ -210,7 +211,7 @@ class GymEpisodes:
         next_states = torch.where(running, world.as_states(observations).view_as(states), states)
         rewards = np.where(self.running, rewards, 0.0)
         self.running &= ~ended
-        return (
+        return Transition(
             next_states,
             torch.as_tensor(rewards, device=world.device, dtype=world.dtype).view(self.shape),
             torch.as_tensor(ended, device=world.device).view(self.shape),
@@ -239,6 +240,9 @@ class GymWorld:
 
     name = "gym"
     arena = None  # no map to draw: plots take their extent from the data
+    maps = False
+    episodes_end = True  # an environment may end an episode before T
+    capturable = False  # steps run outside torch
 
     def __init__(
         self,
@@ -366,12 +370,23 @@ class GymWorld:
             0, SEED_BOUND, (n,), generator=generator, device=generator.device, dtype=torch.long
         )
 
-    def episodes(self, shape: tuple[int, int]) -> GymEpisodes:
-        """S' x N episodes on a pool of slots (one pool per size, kept between rollouts)."""
-        m = shape[0] * shape[1]
+    def begin(
+        self, configurations: torch.Tensor, horizon: int, generators: Sequence[torch.Generator]
+    ) -> tuple[GymEpisodes, torch.Tensor]:
+        """S' x N episodes on a pool of slots (one pool per size, kept between rollouts), each
+        reset with its own seed; member i draws its N seeds, then its action noise."""
+        seeds, noise = [], []
+        for generator in generators:
+            seeds.append(self.draw_seeds(configurations.shape[1], generator))
+            noise.append(action_noise(configurations.shape[1], horizon, self, generator))
+        m = configurations.numel()
         if m not in self._pools:
             self._pools[m] = SlotPool(self.env_id, self.configurations, m, self.workers)
-        return GymEpisodes(self, self._pools[m], shape)
+        episodes = GymEpisodes(self, self._pools[m], configurations, torch.stack(seeds))
+        return episodes, torch.stack(noise)
+
+    def facts(self) -> dict[str, object]:
+        return {"env_id": self.env_id}
 
     def close(self) -> None:
         """Close the environments (and stop the worker processes); later rollouts reopen them."""

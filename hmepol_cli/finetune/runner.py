@@ -29,13 +29,19 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from hmepol_cli.config import DEVICES, check_wind, parse_bptt, validate_policy
-from hmepol_cli.envs import ENVIRONMENTS, GymWorld, World, make_world
+from hmepol_cli.envs import ENVIRONMENTS, World, make_world
 from hmepol_cli.envs.base import edge_rule
 from hmepol_cli.errors import ConfigError, UserError
-from hmepol_cli.finetune.task import GoalTask, RewardTask, TargetError, make_tasks
+from hmepol_cli.finetune.task import (
+    GoalTask,
+    RewardTask,
+    TargetError,
+    TaskRollout,
+    collect_episodes,
+    make_tasks,
+)
 from hmepol_cli.finetune.trpo import TRPO, TRPOSettings, TRPOStep
 from hmepol_cli.policies import Policy, make_policy
-from hmepol_cli.rollout import Rollout, collect_episodes
 from hmepol_cli.rundir import (
     FINETUNE_CSV,
     TARGETS_JSON,
@@ -238,12 +244,14 @@ def check_finetune(cfg: DictConfig) -> Plan:
         raise ConfigError(f"goal_size={cfg.goal_size!r} must be a number > 0 (or null)")
     world = make_world(env).to(device, torch.float32)
     goal = _goal(cfg)
-    if isinstance(world, GymWorld):
-        # A Gymnasium world brings its own task: its reward and termination, per configuration.
+    if not world.maps:
+        # A world without a map (a Gymnasium environment) brings its own task: its reward and
+        # termination, per configuration.
         if goal != "random":
             raise ConfigError(
-                f"goal={goal!r}: a Gymnasium world ({world.env_id}) is fine-tuned on its own "
-                "reward; leave goal at random (goal, targets and goal_size are for the 2-D worlds)"
+                f"goal={goal!r}: a Gymnasium world ({world.facts()['env_id']}) is fine-tuned on "
+                "its own reward; leave goal at random (goal, targets and goal_size are for the "
+                "2-D worlds)"
             )
         tasks = {c: [RewardTask(c, int(cfg.horizon))] for c in _configurations(cfg, world)}
         return Plan(
@@ -356,7 +364,7 @@ def _row(
     target: int,
     config: int,
     world: World,
-    rollout: Rollout,
+    rollout: TaskRollout,
     step: TRPOStep,
     plan: Plan,
     seed: int,

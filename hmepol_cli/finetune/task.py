@@ -23,6 +23,9 @@ import numpy as np
 import torch
 
 from hmepol_cli.envs.base import Box, NavigationWorld
+from hmepol_cli.envs.world import World
+from hmepol_cli.policies.base import Policy
+from hmepol_cli.rollout import Rollout, collect_single
 
 TARGET_SCALE = 0.1  # default target side, as a fraction of the arena side
 MASK_RESOLUTION = 400  # free-space raster used to check that a target lies in free space
@@ -56,6 +59,62 @@ class RewardTask:
     config: int
     horizon: int
     target = None  # no target area: the environment's reward says what to do
+    reached = None  # episodes end when the environment ends them
+
+
+@dataclass
+class TaskRollout(Rollout):
+    """Episodes of one fine-tuning task, with what the task makes of them. The trajectories may
+    be shorter than the task's horizon T when every episode ended before it."""
+
+    horizon: int = 0  # the task's T
+    goal: bool = False  # a goal task: the reward is reaching the target, which ends the episode
+
+    @property
+    def rewards(self) -> torch.Tensor:
+        """1 on the step an episode reaches the target of a goal task, 0 otherwise; or the
+        environment's reward. (..., T)"""
+        return self.ended.to(self.states.dtype) if self.goal else self.reward
+
+    @property
+    def ends(self) -> torch.Tensor:
+        """True on the step an episode ended (reached its target, or the environment ended it)."""
+        return self.ended
+
+    @property
+    def returns(self) -> torch.Tensor:
+        """Undiscounted return of each episode. (..., N)"""
+        return (self.rewards * self.alive).sum(dim=-1)
+
+    @property
+    def success(self) -> torch.Tensor | None:
+        """A goal task: the step an episode reached the target (None: no target). (..., T)"""
+        return self.ended if self.goal else None
+
+    @property
+    def succeeded(self) -> torch.Tensor:
+        return self.success.any(dim=-1)
+
+    @property
+    def lengths(self) -> torch.Tensor:
+        return self.alive.sum(dim=-1)
+
+
+def collect_episodes(
+    world: World,
+    policy: Policy,
+    task: GoalTask | RewardTask,
+    episodes: int,
+    generator: torch.Generator,
+) -> TaskRollout:
+    """``episodes`` episodes of one fine-tuning task, stepped together until all have ended or
+    the task's horizon is spent. (N, T, ...)"""
+    configurations = torch.full((episodes,), task.config, dtype=torch.long, device=world.device)
+    rollout = collect_single(
+        world, policy, configurations, task.horizon, generator,
+        ends_episode=task.reached, until_ended=True,
+    )  # fmt: skip
+    return TaskRollout(**vars(rollout), horizon=task.horizon, goal=task.reached is not None)
 
 
 def default_target_side(world: NavigationWorld) -> float:

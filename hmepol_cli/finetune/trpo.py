@@ -41,7 +41,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from hmepol_cli.envs import World
+from hmepol_cli.envs.world import World
+from hmepol_cli.finetune.task import TaskRollout
 from hmepol_cli.policies.base import Policy, mlp
 from hmepol_cli.rollout import Rollout
 
@@ -279,7 +280,7 @@ class TRPO:
         self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=settings.value_lr)
         self.params = [p for p in policy.parameters() if p.requires_grad]
 
-    def advantages(self, rollout: Rollout) -> tuple[torch.Tensor, torch.Tensor]:
+    def advantages(self, rollout: TaskRollout) -> tuple[torch.Tensor, torch.Tensor]:
         """(advantages, value targets), both (N, T)."""
         s = self.settings
         n, t_len = rollout.alive.shape
@@ -292,7 +293,7 @@ class TRPO:
         adv = gae(rollout.rewards, v[:, :-1], next_values, ends, s.gamma, s.gae_lambda)
         return adv, adv + v[:, :-1]
 
-    def update(self, rollout: Rollout) -> TRPOStep:
+    def update(self, rollout: TaskRollout) -> TRPOStep:
         """One update from a goal-task rollout of the policy (no member dimension)."""
         s, policy = self.settings, self.policy
         mask = rollout.alive.to(rollout.rewards.dtype)
@@ -350,7 +351,7 @@ class TRPO:
             value_loss=value_loss,
         )
 
-    def fisher_kl(self, rollout: Rollout) -> torch.Tensor:
+    def fisher_kl(self, rollout: TaskRollout) -> torch.Tensor:
         """Mean KL (with its graph) over the share ``fisher_fraction`` of the episodes."""
         n = rollout.alive.shape[0]
         keep = max(1, round(self.settings.fisher_fraction * n))
@@ -360,7 +361,7 @@ class TRPO:
         mask = rollout.alive.to(rollout.rewards.dtype)
         return masked_mean(gaussian_kl(self.policy, rollout, self.settings.bptt), mask)
 
-    def fit_value(self, rollout: Rollout, targets: torch.Tensor, mask: torch.Tensor) -> float:
+    def fit_value(self, rollout: TaskRollout, targets: torch.Tensor, mask: torch.Tensor) -> float:
         """Regress V on the lambda-returns of the live steps, in shuffled mini-batches."""
         s = self.settings
         n, t_len = mask.shape
