@@ -219,6 +219,7 @@ def validate(cfg: DictConfig) -> None:
     from hmepol_cli.algorithms import ALGORITHMS
     from hmepol_cli.envs import ENVIRONMENTS
     from hmepol_cli.envs.base import EDGE_RULES
+    from hmepol_cli.estimators import ESTIMATORS
     from hmepol_cli.objectives import OBJECTIVES
 
     _one_of("env", cfg.env.name, tuple(ENVIRONMENTS))
@@ -232,6 +233,7 @@ def validate(cfg: DictConfig) -> None:
     _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
     _one_of("algo.backtracking", cfg.algo.backtracking, BACKTRACKING)
     _one_of("algo.backtrack_restore", cfg.algo.backtrack_restore, RESTORE)
+    _one_of("estimator", cfg.estimator.name, tuple(ESTIMATORS))
     _one_of("estimator.neighbours", cfg.estimator.neighbours, NEIGHBOURS)
     if not 0 < cfg.algo.alpha <= 1:  # also refuses nan
         raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")

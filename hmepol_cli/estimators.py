@@ -201,3 +201,55 @@ def particles_by_batch(states: torch.Tensor, batch_size: int) -> torch.Tensor:
     """(N, T, d) states -> (N / B, B * T, d) particles grouped by mini-batch."""
     n, t, d = states.shape
     return states.reshape(n // batch_size, batch_size * t, d)
+
+
+class KNNEstimator:
+    """The kNN estimators of thesis 2.3.4 with k neighbours, as one object the algorithm talks
+    to: the neighbour search (once per epoch), the entropy (eq. 2.6), the IW entropy (eq. 2.7)
+    and the KL (eq. 2.8). A new estimator is a class with these methods and an entry in
+    ``ESTIMATORS`` (and a ``conf/estimator/<name>.yaml``)."""
+
+    name = "knn"
+
+    def __init__(self, k: int, eps: float = 1e-10, neighbours: str = "auto") -> None:
+        self.k, self.eps, self.method = int(k), float(eps), str(neighbours)
+
+    @classmethod
+    def from_config(cls, cfg) -> KNNEstimator:
+        """The estimator of an ``estimator`` config group entry (k, eps, neighbours)."""
+        return cls(cfg.k, cfg.eps, cfg.neighbours)
+
+    def search(self, particles: torch.Tensor) -> Neighbours:
+        """particles (M, P, d) -> their neighbour sets, within each mini-batch."""
+        return nearest_neighbours(particles, self.k, self.method)
+
+    def entropy(self, neighbours: Neighbours) -> torch.Tensor:
+        """Eq. 2.6 per mini-batch. -> (M,)"""
+        return knn_entropy(neighbours, self.eps)
+
+    def iw_entropy(self, weights: torch.Tensor, neighbours: Neighbours) -> torch.Tensor:
+        """Eq. 2.7 per mini-batch, differentiable in the weights (M, P). -> (M,)"""
+        return iw_entropy(weights, neighbours, self.eps)
+
+    def kl(self, weights: torch.Tensor, neighbours: Neighbours) -> torch.Tensor:
+        """Eq. 2.8 per mini-batch. -> (M,)"""
+        return kl_divergence(weights, neighbours)
+
+    def floor_share(self, neighbours: Neighbours) -> torch.Tensor:
+        """Share of each mini-batch's particles whose ball volume hit the floor. -> (M,)"""
+        return floor_share(neighbours, self.eps, per_batch=True)
+
+
+# name -> estimator class; the config check, the error messages and make_estimator read it.
+ESTIMATORS: dict[str, type[KNNEstimator]] = {"knn": KNNEstimator}
+
+
+def make_estimator(cfg) -> KNNEstimator:
+    """The estimator named by ``cfg.name`` (the ``estimator`` config group)."""
+    try:
+        kind = ESTIMATORS[cfg.name]
+    except KeyError:
+        raise ValueError(
+            f"unknown estimator {cfg.name!r}; choose one of: {', '.join(ESTIMATORS)}"
+        ) from None
+    return kind.from_config(cfg)

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from hmepol_cli.envs import World
+from hmepol_cli.plots import save_run_plots
 from hmepol_cli.population import PolicyPopulation
-from hmepol_cli.report.plots import save_run_plots
 from hmepol_cli.rollout import collect
 from hmepol_cli.rundir import save_positions
 

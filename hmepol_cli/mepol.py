@@ -56,9 +56,7 @@ class OffPolicySettings:
     trajectories: int  # N
     horizon: int  # T
     batch_size: int  # B, trajectories per mini-batch
-    k: int  # neighbours of the estimators
-    neighbours: str  # the neighbour search: auto | kdtree | torch
-    eps: float  # floor of the ball volumes
+    estimator: estimators.KNNEstimator  # entropy, IW entropy and KL (eqs. 2.6-2.8)
     objective: str  # mean | cvar
     alpha: float  # CVaR level (eq. 3.3)
     kl_threshold: float  # delta
@@ -74,15 +72,13 @@ class OffPolicySettings:
 
     @classmethod
     def from_config(cls, cfg: DictConfig, history_size: int) -> OffPolicySettings:
-        a, e = cfg.algo, cfg.estimator
+        a = cfg.algo
         # Runs started before the reference's backtracking was the default keep their own rule.
         return cls(
             trajectories=int(a.trajectories),
             horizon=int(a.horizon),
             batch_size=int(a.batch_size),
-            k=int(e.k),
-            neighbours=str(e.neighbours),
-            eps=float(e.eps),
+            estimator=estimators.make_estimator(cfg.estimator),
             objective=str(a.objective),
             alpha=float(a.alpha),
             kl_threshold=float(a.kl_threshold),
@@ -199,14 +195,14 @@ def _update(
     # env.features; the whole position in the 2-D worlds).
     features = world.entropy_features(rollout.particles)
     particles = estimators.particles_by_batch(features.flatten(0, 1), s.batch_size)
-    neighbours = estimators.nearest_neighbours(particles, s.k, s.neighbours)  # (S' M, P, k)
-    entropies = estimators.knn_entropy(neighbours, s.eps).view(n, -1)  # (S', M), eq. 2.6
+    neighbours = s.estimator.search(particles)  # (S' M, P, k)
+    entropies = s.estimator.entropy(neighbours).view(n, -1)  # (S', M), eq. 2.6
     t2 = time.perf_counter()
     surrogate = Surrogate(population, rollout, neighbours, members, settings)
     updates = off_policy_loop(population, optimizer, surrogate, members, settings)
     t3 = time.perf_counter()
     seconds = {"collect": t1 - t0, "neighbours": t2 - t1, "update": t3 - t2, "epoch": t3 - t0}
-    floor = estimators.floor_share(neighbours, s.eps, per_batch=True).view(n, -1)
+    floor = s.estimator.floor_share(neighbours).view(n, -1)
     low, high = world.action_bounds()
     clipped = ((rollout.actions < low) | (rollout.actions > high)).flatten(1)
     host = torch.stack(  # one transfer for every per-member statistic
@@ -296,8 +292,8 @@ class Surrogate:
         weights = estimators.importance_weights(
             _live(target - behaviour, alive).flatten(0, 1), s.batch_size
         )
-        entropies = estimators.iw_entropy(weights, nb, s.eps).view(len(rows), -1)  # eq. 2.7
-        one_step = estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)  # eq. 2.8
+        entropies = s.estimator.iw_entropy(weights, nb).view(len(rows), -1)  # eq. 2.7
+        one_step = s.estimator.kl(weights, nb).view(len(rows), -1).mean(-1)  # eq. 2.8
         exact = self._exact_kl(who, inputs, actions, histories, alive, rows, nb)
         return Estimate(
             entropies=entropies,
@@ -320,7 +316,7 @@ class Surrogate:
         weights = estimators.importance_weights(
             _live(exact - sampling, alive).flatten(0, 1), s.batch_size
         )
-        return estimators.kl_divergence(weights, nb).view(len(rows), -1).mean(-1)
+        return s.estimator.kl(weights, nb).view(len(rows), -1).mean(-1)
 
 
 # ------------------------------------------------------------------ the off-policy loop

@@ -8,6 +8,7 @@ import dataclasses
 import pytest
 import torch
 
+from hmepol_cli.estimators import KNNEstimator
 from hmepol_cli.mepol import Estimate, OffPolicySettings, off_policy_loop
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 
@@ -16,7 +17,7 @@ LR = 0.1
 
 def settings(**changes) -> OffPolicySettings:
     base = OffPolicySettings(
-        trajectories=10, horizon=4, batch_size=5, k=2, neighbours="kdtree", eps=1e-10,
+        trajectories=10, horizon=4, batch_size=5, estimator=KNNEstimator(2),
         objective="mean", alpha=1.0, kl_threshold=0.15, lr=LR, max_off_iters=30,
         backtracking="reference", backtrack_tries=10, backtrack_factor=2.0,
         restore="parameters", exact_kl=False, bptt=1,

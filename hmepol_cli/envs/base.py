@@ -81,6 +81,7 @@ class NavigationWorld:
     maps = True  # walls on an arena: pictures draw it, fine-tuning draws goals in free space
     episodes_end = False  # every trajectory runs T steps
     capturable = True  # a step is tensor operations only
+    projection = (0, 1)  # the state indices pictures draw: the position
     state_dim: int = 2
     action_dim: int = 2
     max_action: float = MAX_ACTION

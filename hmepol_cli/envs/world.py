@@ -51,6 +51,7 @@ class World(Protocol):
     maps: bool  # a 2-D map with walls: heatmaps on the arena, `hmepol show`, goal tasks
     episodes_end: bool  # the environment can end an episode before T (alive, reward, ended)
     capturable: bool  # steps are tensor operations only: a rollout can be one CUDA graph
+    projection: tuple[int, int]  # the two state indices pictures draw (plane())
 
     @property
     def n_configurations(self) -> int: ...

@@ -9,10 +9,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from hmepol_cli.errors import UserError
+from hmepol_cli.plots import save_run_plots
 from hmepol_cli.report.figures import make_figures
 from hmepol_cli.report.html import write_index
 from hmepol_cli.report.manifest import previous_report_files, write_manifest
-from hmepol_cli.report.plots import save_run_plots
 from hmepol_cli.report.runs import (
     SkippedRunWarning,
     discover_runs,

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.algorithms import SCRATCH
-from hmepol_cli.report.plots import (
+from hmepol_cli.plots import (
     BOUND_COLOUR,
     LINESTYLES,
     algo_colour,

@@ -1,4 +1,4 @@
-"""Drawing blocks shared by the report and the trainer: walls, visitation heatmaps, trajectories.
+"""Drawing blocks shared by the report and the evaluation: walls, visitation heatmaps, trajectories.
 
 Figures are built with :class:`matplotlib.figure.Figure` directly (no pyplot state, no GUI
 backend), so plotting works headless and from worker processes.
@@ -48,7 +48,7 @@ def save(fig: Figure, path: Path) -> Path:
 def has_map(world) -> bool:
     """True for a world drawn as a map (an arena with walls); False for an unknown world or a
     Gymnasium world, whose pictures show a projection of the observation on two indices."""
-    return world is not None and getattr(world, "arena", None) is not None
+    return world is not None and world.maps
 
 
 def world_extent(world, positions: np.ndarray | None = None) -> tuple[float, float, float, float]:
@@ -248,16 +248,18 @@ def save_run_plots(
     """
     out_dir = Path(out_dir)
     names = list(
-        getattr(world, "configuration_names", None)
-        or [f"config {c}" for c in sorted(positions_by_config)]
+        world.configuration_names
+        if world is not None
+        else [f"config {c}" for c in sorted(positions_by_config)]
     )
     n_configurations = len(names)
     cols = min(n_configurations, 5)
     rows = math.ceil(n_configurations / cols)
     some = next(iter(positions_by_config.values()))
     n_traj, steps = some.shape[0], some.shape[1] - 1
-    world_name = getattr(world, "env_id", None) or getattr(world, "name", "world")
-    projection = getattr(world, "projection", None)  # a Gymnasium world: two observation indices
+    facts = {} if world is None else world.facts()
+    world_name = facts.get("env_id") or (world.name if world is not None else "world")
+    projection = None if world is None or world.maps else world.projection
     axes = "" if projection is None else f"\nx: observation[{projection[0]}], y: [{projection[1]}]"
 
     fig = new_figure(2.6 * cols + 1.2, 2.6 * rows + 0.6)
