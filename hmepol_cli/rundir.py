@@ -26,6 +26,7 @@ keeps the config it started with: continuing it with another config is refused.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import io
@@ -40,6 +41,7 @@ import sys
 import tempfile
 import time
 import warnings
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -498,20 +500,21 @@ class RunDirectory:
 
 
 # ------------------------------------------------------------------------------ training CSVs
-class EpochLog:
-    """epochs.csv, batches.csv (and, with diagnostics, steps.csv) of a training run, rewritten
-    atomically every epoch.
+class RunTables:
+    """The CSV files of a run directory (training: epochs.csv, batches.csv and, with
+    diagnostics, steps.csv; fine-tuning: finetune.csv), rewritten atomically whenever rows are
+    added, so a reader never sees half a file.
 
-    Rows of epochs a checkpoint does not cover are dropped on resume (:meth:`truncate`), so
-    every epoch appears exactly once."""
+    Every row carries an ``epoch``; rows of epochs a checkpoint does not cover are dropped on
+    resume (:meth:`truncate`), so every epoch appears exactly once."""
 
-    def __init__(self, run_dir: Path) -> None:
-        self.run_dir = Path(run_dir)
-        self.tables = {name: self._read(name) for name in (EPOCHS_CSV, BATCHES_CSV, STEPS_CSV)}
+    def __init__(self, run_dir: Path, names: Sequence[str], optional: Sequence[str] = ()) -> None:
+        """``optional`` tables are written only once they have rows."""
+        self.run_dir, self.optional = Path(run_dir), set(optional)
+        self.tables = {name: self._read(name) for name in (*names, *optional)}
 
-    @property
-    def epochs(self) -> pd.DataFrame:
-        return self.tables[EPOCHS_CSV]
+    def __getitem__(self, name: str) -> pd.DataFrame:
+        return self.tables[name]
 
     def _read(self, name: str) -> pd.DataFrame:
         path = self.run_dir / name
@@ -524,28 +527,66 @@ class EpochLog:
                 self.tables[name] = table[table["epoch"] < next_epoch]
         self._flush()
 
-    def append(
-        self, row: dict[str, Any], batches: pd.DataFrame, steps: pd.DataFrame | None = None
-    ) -> None:
-        new = {EPOCHS_CSV: pd.DataFrame([row]), BATCHES_CSV: batches, STEPS_CSV: steps}
-        for name, rows in new.items():
-            if rows is not None and len(rows):
-                self.tables[name] = pd.concat([self.tables[name], rows], ignore_index=True)
+    def append(self, **rows: pd.DataFrame | None) -> None:
+        """Add rows to the tables named by the keywords (a table's file name without .csv)."""
+        for key, new in rows.items():
+            name = f"{key}.csv"
+            if new is not None and len(new):
+                self.tables[name] = pd.concat([self.tables[name], new], ignore_index=True)
         self._flush()
 
     def _flush(self) -> None:
         for name, table in self.tables.items():
-            if name != STEPS_CSV or len(table) or (self.run_dir / name).exists():
+            if name not in self.optional or len(table) or (self.run_dir / name).exists():
                 write_csv(self.run_dir / name, table)
 
     @property
     def last_finite(self) -> dict[str, float]:
-        """The last epoch's finite numbers (what a failure record keeps)."""
-        if not len(self.epochs):
+        """The last row's finite numbers of the first table (what a failure record keeps)."""
+        table = next(iter(self.tables.values()))
+        if not len(table):
             return {}
-        row = self.epochs.iloc[-1]
+        row = table.iloc[-1]
         return {
             k: float(v)
             for k, v in row.items()
             if isinstance(v, int | float | np.number) and math.isfinite(float(v))
         }
+
+
+def training_tables(run_dir: Path) -> RunTables:
+    return RunTables(run_dir, (EPOCHS_CSV, BATCHES_CSV), optional=(STEPS_CSV,))
+
+
+@contextlib.contextmanager
+def writing(
+    directories: Sequence[RunDirectory],
+    device: torch.device | str | None = None,
+    last: Callable[[RunDirectory], dict[str, float]] = lambda directory: {},
+) -> Iterator[Sequence[RunDirectory]]:
+    """Write run directories (training and fine-tuning alike): open each (lock, config check,
+    provenance, status running) and close them all at the end; an exception marks every one
+    whose status is still running as failed, with its reason and ``last(directory)``, its last
+    finite numbers."""
+    opened: list[RunDirectory] = []
+    try:
+        for directory in directories:  # a refusal here (a lock, a config) changes no status
+            directory.open(device)
+            opened.append(directory)
+    except BaseException:
+        for directory in opened:
+            directory.close()
+        raise
+    try:
+        yield opened
+    except BaseException as error:
+        reason = f"{type(error).__name__}: {error}".splitlines()[0][:300]
+        if isinstance(error, KeyboardInterrupt):
+            reason = "interrupted (KeyboardInterrupt)"
+        for directory in opened:
+            if directory.info().get("status") == "running":
+                directory.fail(reason, last=last(directory))
+        raise
+    finally:
+        for directory in opened:
+            directory.close()

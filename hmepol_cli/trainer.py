@@ -36,11 +36,13 @@ from hmepol_cli.rundir import (
     CHECKPOINT,
     EVAL_DIR,
     FINAL_EVAL,
-    EpochLog,
     RunDirectory,
+    RunTables,
     epoch_checkpoint,
     load_checkpoint,
     save_checkpoint,
+    training_tables,
+    writing,
 )
 from hmepol_cli.seeding import (
     DTYPES,
@@ -61,7 +63,7 @@ class Member:
     run_dir: Path
     generator: torch.Generator
     directory: RunDirectory
-    log: EpochLog | None = None  # while the directory is open
+    log: RunTables | None = None  # while the directory is open
     start_epoch: int = 0
     failure: str | None = None  # why it stopped, when its numbers stopped making sense
     stalled_for: int = 0  # consecutive epochs in which no off-policy step was accepted
@@ -150,64 +152,49 @@ class Trainer:
         return restored
 
     # ------------------------------------------------------------------ the run directories
-    def open(self) -> None:
-        """Lock every member's directory, check its config, record the world's facts."""
-        opened = []
-        try:
-            for member in self.members:
-                member.directory.open(self.device)
-                opened.append(member)
-                member.log = EpochLog(member.run_dir)
-                free = [self.world.free_area(c) for c in range(self.world.n_configurations)]
-                member.directory.update(
-                    env=self.cfg.env.name,
-                    algo=self.cfg.algo.name,
-                    policy=self.cfg.policy.name,
-                    seed=int(member.cfg.seed),
-                    **{"wind": None, "env_id": None, **self.world.facts()},
-                    epochs=int(self.cfg.epochs),
-                    epochs_done=int(member.directory.info().get("epochs_done", 0)),
-                    config_names=list(self.world.configuration_names),
-                    config_probs=list(self.world.configuration_probs),
-                    free_area=free,
-                    log_free_area=[math.log(f) for f in free],
-                )
-        except BaseException:
-            for member in opened:
-                member.directory.close()
-            raise
-
-    def close(self) -> None:
+    def record_world(self) -> None:
+        """Each member's tables, and what its run.json says about the world and the run."""
+        free = [self.world.free_area(c) for c in range(self.world.n_configurations)]
         for member in self.members:
-            member.directory.close()
-        self.world.close()  # a Gymnasium world's environments and worker processes
+            member.log = training_tables(member.run_dir)
+            member.directory.update(
+                env=self.cfg.env.name,
+                algo=self.cfg.algo.name,
+                policy=self.cfg.policy.name,
+                seed=int(member.cfg.seed),
+                **{"wind": None, "env_id": None, **self.world.facts()},
+                epochs=int(self.cfg.epochs),
+                epochs_done=int(member.directory.info().get("epochs_done", 0)),
+                config_names=list(self.world.configuration_names),
+                config_probs=list(self.world.configuration_probs),
+                free_area=free,
+                log_free_area=[math.log(f) for f in free],
+            )
 
-    # ------------------------------------------------------------------ Algorithm 3.1
+    def _last_finite(self, directory: RunDirectory) -> dict[str, float]:
+        member = next(m for m in self.members if m.directory is directory)
+        return {} if member.log is None else member.log.last_finite
+
+    # ------------------------------------------------------------------ the epochs
     def train(self, resume: bool = False) -> list[Path]:
         """Train every member to ``epochs`` (from its checkpoint when ``resume``), evaluate the
         final policies, and leave each directory finished or failed. -> the run directories"""
-        self.open()
+        directories = [m.directory for m in self.members]
         try:
-            if resume:
-                for s in self.restore():
-                    member = self.members[s]
-                    print(f"hmepol: resuming {member.run_dir} at epoch {member.start_epoch}")
-            self._epochs()
-            survivors = [m for m in self.members if m.failure is None]
-            if survivors:
-                self.save_evaluation(FINAL_EVAL)
-            for member in survivors:
-                member.directory.update(status="finished", epochs_done=int(self.cfg.epochs))
-        except BaseException as error:
-            reason = f"{type(error).__name__}: {error}".splitlines()[0][:300]
-            if isinstance(error, KeyboardInterrupt):
-                reason = "interrupted (KeyboardInterrupt)"
-            for member in self.members:
-                if member.failure is None and member.log is not None:
-                    member.directory.fail(reason, last=member.log.last_finite)
-            raise
+            with writing(directories, self.device, last=self._last_finite):
+                self.record_world()
+                if resume:
+                    for s in self.restore():
+                        member = self.members[s]
+                        print(f"hmepol: resuming {member.run_dir} at epoch {member.start_epoch}")
+                self._epochs()
+                survivors = [m for m in self.members if m.failure is None]
+                if survivors:
+                    self.save_evaluation(FINAL_EVAL)
+                for member in survivors:
+                    member.directory.update(status="finished", epochs_done=int(self.cfg.epochs))
         finally:
-            self.close()
+            self.world.close()  # a Gymnasium world's environments and worker processes
         return [m.run_dir for m in self.members]
 
     @property
@@ -268,7 +255,8 @@ class Trainer:
         diverged = (
             stats.history_max > alarms.history_bound or stats.action_max > alarms.action_bound
         )
-        member.log.append(*_epoch_rows(epoch, stats, diverged, self.world.n_configurations))
+        epochs, batches, steps = _epoch_rows(epoch, stats, diverged, self.world.n_configurations)
+        member.log.append(epochs=pd.DataFrame([epochs]), batches=batches, steps=steps)
         self.save(s, epoch + 1)
         member.directory.update(epochs_done=epoch + 1)
         if diverged:

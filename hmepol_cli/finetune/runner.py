@@ -28,10 +28,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from hmepol_cli.config import DEVICES, check_wind, parse_bptt, validate_policy
+from hmepol_cli.config import check_device, check_wind, parse_bptt, validate_policy
 from hmepol_cli.envs import ENVIRONMENTS, World, make_world
 from hmepol_cli.envs.base import edge_rule
-from hmepol_cli.errors import ConfigError, UserError
+from hmepol_cli.errors import ConfigError
 from hmepol_cli.finetune.task import (
     GoalTask,
     RewardTask,
@@ -46,9 +46,10 @@ from hmepol_cli.rundir import (
     FINETUNE_CSV,
     TARGETS_JSON,
     RunDirectory,
+    RunTables,
     load_trained_policy,
-    write_csv,
     write_json,
+    writing,
 )
 from hmepol_cli.seeding import get_device, make_generator, set_random_seed
 
@@ -101,29 +102,10 @@ def trpo_settings(cfg: DictConfig, bptt: int | None) -> TRPOSettings:
     _in(cfg, "max_kl", 0.0, math.inf)
     _in(cfg, "value_lr", 0.0, math.inf)
     _in(cfg, "damping", 0.0, math.inf, closed_low=True)
-    if cfg.device not in DEVICES:
-        raise ConfigError(
-            f"device={cfg.device!r} is not allowed; choose one of: {', '.join(DEVICES)}"
-        )
     hidden = list(cfg.value_hidden)
     if not hidden or not all(h > 0 for h in hidden):
         raise ConfigError(f"value_hidden={hidden!r} must be a list of whole numbers > 0")
-    return TRPOSettings(
-        gamma=float(cfg.gamma),
-        gae_lambda=float(cfg.gae_lambda),
-        max_kl=float(cfg.max_kl),
-        cg_iters=int(cfg.cg_iters),
-        damping=float(cfg.damping),
-        line_search_steps=int(cfg.line_search_steps),
-        line_search_shrink=float(cfg.line_search_shrink),
-        value_lr=float(cfg.value_lr),
-        value_epochs=int(cfg.value_epochs),
-        value_batch=int(cfg.value_batch),
-        value_hidden=tuple(hidden),
-        normalize_advantage=bool(cfg.normalize_advantage),
-        bptt=bptt,
-        fisher_fraction=float(cfg.fisher_fraction),
-    )
+    return TRPOSettings.from_config(cfg, bptt)
 
 
 def _is_scratch(init: object) -> bool:
@@ -217,11 +199,8 @@ def _goal(cfg: DictConfig) -> str | list:
 def check_finetune(cfg: DictConfig) -> Plan:
     """Every value of a fine-tuning config checked, the world built and the targets drawn (a
     target outside the free space refused), before anything is written."""
-    device = get_device(cfg.device) if cfg.device in DEVICES else None
-    if device is None:
-        raise ConfigError(
-            f"device={cfg.device!r} is not allowed; choose one of: {', '.join(DEVICES)}"
-        )
+    check_device(cfg.device)
+    device = get_device(cfg.device)
     if _is_scratch(cfg.init):
         fresh = cfg.policy.copy()
         if fresh.bptt is None:
@@ -298,8 +277,8 @@ def finetune(cfg: DictConfig) -> Path:
     if cfg.get("threads", 0) and cfg.threads > 0:
         torch.set_num_threads(int(cfg.threads))
     out_dir = _output_dir(cfg)
-    directory = RunDirectory(out_dir, cfg, kind="finetune").open(device)
-    try:
+    directory = RunDirectory(out_dir, cfg, kind="finetune")
+    with writing([directory], device):
         directory.update(
             env=plan.env.name,
             wind=plan.env.get("wind") if plan.env.name == "corridor" else None,
@@ -312,19 +291,15 @@ def finetune(cfg: DictConfig) -> Path:
             config_probs=list(plan.world.configuration_probs),
         )
         write_json(out_dir / TARGETS_JSON, _targets_info(plan))
-        rows = _run(cfg, plan, device, out_dir)
+        tables = RunTables(out_dir, (FINETUNE_CSV,))
+        tables.truncate(0)  # a fine-tuning run again starts over
+        rows = _run(cfg, plan, device, tables)
         directory.update(status="finished", epochs_done=int(cfg.epochs))
-    except BaseException as error:
-        if not isinstance(error, UserError):
-            directory.fail(f"{type(error).__name__}: {error}".splitlines()[0][:300])
-        raise
-    finally:
-        directory.close()
     print(f"hmepol: fine-tuning returns ({len(rows)} rows) written to {out_dir / FINETUNE_CSV}")
     return out_dir
 
 
-def _run(cfg: DictConfig, plan: Plan, device: torch.device, out_dir: Path) -> list[dict]:
+def _run(cfg: DictConfig, plan: Plan, device: torch.device, tables: RunTables) -> list[dict]:
     rows: list[dict] = []
     total = sum(len(t) for t in plan.tasks.values()) * int(cfg.epochs)
     bar = tqdm(
@@ -352,7 +327,7 @@ def _run(cfg: DictConfig, plan: Plan, device: torch.device, out_dir: Path) -> li
                 row = _row(epoch, k, c, world, rollout, step, plan, int(cfg.seed))
                 row["seconds"] = time.perf_counter() - t0
                 rows.append(row)
-                write_csv(out_dir / FINETUNE_CSV, pd.DataFrame(rows, columns=COLUMNS))
+                tables.append(finetune=pd.DataFrame([row], columns=COLUMNS))
                 bar.update(1)
                 bar.set_postfix(config=c, target=k, R=f"{row['return']:.2f}", KL=f"{step.kl:.3g}")
     bar.close()

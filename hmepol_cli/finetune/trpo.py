@@ -36,11 +36,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import nn
 
+from hmepol_cli.config import TRPOConfig
 from hmepol_cli.envs.world import World
 from hmepol_cli.finetune.task import TaskRollout
 from hmepol_cli.policies.base import Policy, mlp
@@ -48,24 +49,18 @@ from hmepol_cli.rollout import Rollout
 
 
 @dataclass
-class TRPOSettings:
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    max_kl: float = 0.01  # delta, the trust region's KL bound
-    cg_iters: int = 10
-    damping: float = 0.1  # added to F for the conjugate-gradient solve
-    line_search_steps: int = 10  # line-search tries (the full step is the first)
-    line_search_shrink: float = 0.8  # the step is multiplied by this between tries
-    value_lr: float = 1e-3
-    value_epochs: int = 10
-    value_batch: int = 512
-    value_hidden: tuple[int, ...] = (64, 64)
-    normalize_advantage: bool = True
+class TRPOSettings(TRPOConfig):
+    """The hyperparameters (defaults in :class:`hmepol_cli.config.TRPOConfig`) and how far back
+    the likelihoods recompute a recursive policy's history (``policy.bptt``: 1, n, None)."""
+
     bptt: int | None = 1
-    # Share of the episodes whose KL Hessian F is used in the conjugate-gradient solve (the
-    # Fisher-vector products dominate an update's cost). The line search always checks the KL
-    # on every stored trajectory, so the bound holds whatever the share.
-    fisher_fraction: float = 1.0
+
+    @classmethod
+    def from_config(cls, cfg, bptt: int | None) -> TRPOSettings:
+        """The settings of a (checked) fine-tuning config."""
+        values = {f.name: cfg[f.name] for f in fields(TRPOConfig)}
+        values["value_hidden"] = [int(h) for h in values["value_hidden"]]
+        return cls(**values, bptt=bptt)
 
 
 # --------------------------------------------------------------------------- value, GAE
