@@ -34,6 +34,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
+from hmepol_cli import sweeps
 from hmepol_cli.config import register_configs, validate
 from hmepol_cli.errors import ConfigError, RunFailure, UserError
 from hmepol_cli.rundir import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
@@ -177,16 +178,12 @@ def check_train(overrides: list[str]) -> DictConfig:
 
 def check_sweep(overrides: list[str]) -> int:
     """Check the config of every job a sweep would run, before anything is written. -> jobs"""
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     _check_output_dirs(overrides)
     task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
     try:
-        parsed = OverridesParser.create().parse_overrides(task)
+        jobs = sweeps.jobs(task)
     except HydraException as error:
         raise ConfigError(_hydra_message(error)) from None
-    jobs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
     seen = set()
     for job in jobs:
         key = tuple(job)
@@ -270,14 +267,10 @@ def _population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
 
 def _member_subdir(hc: DictConfig, seed: int) -> str:
     """hydra.sweep.subdir of this job with ``seeds=[...]`` replaced by ``seed=<seed>``."""
-    from hydra._internal.config_loader_impl import get_overrides_dirname
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     lines = [o for o in hc.overrides.task if o.lstrip("+~").partition("=")[0] != "seeds"]
-    overrides = OverridesParser.create().parse_overrides([*lines, f"seed={seed}"])
     naming = hc.job.config.override_dirname
-    dirname = get_overrides_dirname(
-        overrides, list(naming.exclude_keys), naming.item_sep, naming.kv_sep
+    dirname = sweeps.override_dirname(
+        [*lines, f"seed={seed}"], list(naming.exclude_keys), naming.item_sep, naming.kv_sep
     )
     job = OmegaConf.create({"hydra": OmegaConf.to_container(hc, resolve=False)})
     job.hydra.job.override_dirname = dirname

@@ -15,14 +15,16 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig
 
 from hmepol_cli.errors import ConfigError
+from hmepol_cli.seeding import DTYPES
 
 
 @dataclass
 class EnvConfig:
     name: str = "slope"  # slope | corridor | multigrid | gym (any Gymnasium id, below)
-    # corridor only: force of the wind along the corridor (top-level `wind` override); null in
-    # fine-tuning means the pre-trained run's wind.
-    wind: float | None = 0.4
+    # corridor only: force of the wind along the corridor, set with the top-level `wind` (the
+    # corridor's env file reads it); null for a world without wind, and in fine-tuning the
+    # pre-trained run's wind.
+    wind: float | None = None
     # 2-D worlds: what a move past the arena's edge does: slide (the reference's quarter turn
     # into a slide along the edge) | mirror (reflected, this project's rule before)
     edge: str = "slide"
@@ -131,7 +133,7 @@ class Config:
     matmul_precision: str = "highest"
     vmap: str = "auto"  # population calls: auto (vmap on cuda, a loop on cpu) | on | off
     cuda_graphs: bool = True  # on a GPU, replay each rollout's steps as one captured CUDA graph
-    epochs: int = 20
+    epochs: int = 500
     resume: str | None = None
     wind: float = 0.4
     progress: bool = True
@@ -194,7 +196,6 @@ def register_configs() -> None:
 
 DEVICES = ("cpu", "cuda", "auto")
 NEIGHBOURS = ("auto", "kdtree", "torch")
-DTYPES = ("float32", "float64")
 BACKTRACKING = ("reference", "first_step")
 RESTORE = ("parameters", "parameters_and_adam")
 
@@ -228,6 +229,21 @@ def check_wind(key: str, value: float | None, allow_none: bool = False) -> None:
         raise ConfigError(f"{key}={value!r} must be a finite number >= 0")
 
 
+def _check_env_wind(cfg: DictConfig) -> None:
+    """The corridor's wind has one key, ``wind``; ``env.wind`` follows it."""
+    wind, env_wind = cfg.wind, cfg.env.wind
+    if cfg.env.name == "corridor" and env_wind != wind:
+        raise ConfigError(
+            f"env.wind={env_wind!r} differs from wind={wind!r}: set the corridor's wind with "
+            f"wind={env_wind!r} (env.wind follows it)"
+        )
+    if cfg.env.name != "corridor" and env_wind is not None:
+        raise ConfigError(
+            f"env.wind={env_wind!r}: {cfg.env.name} has no wind (only the corridor has; set it "
+            "with wind=...)"
+        )
+
+
 def parse_bptt(value: str) -> int | None:
     """'full' -> None (whole trajectory), 'n' -> n >= 1."""
     text = str(value).strip().lower()
@@ -251,7 +267,7 @@ def validate(cfg: DictConfig) -> None:
     _one_of("algo.name", cfg.algo.name, tuple(ALGORITHMS))
     _one_of("algo.objective", cfg.algo.objective, tuple(OBJECTIVES))
     check_device(cfg.device)
-    _one_of("dtype", cfg.dtype, DTYPES)
+    _one_of("dtype", cfg.dtype, tuple(DTYPES))
     _one_of("matmul_precision", cfg.matmul_precision, ("highest", "high", "medium"))
     _one_of("vmap", cfg.vmap, ("auto", "on", "off"))
     _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
@@ -263,8 +279,9 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")
     if cfg.estimator.k <= 0:
         raise ConfigError(f"estimator.k={cfg.estimator.k!r} must be a whole number > 0")
-    for key, value in (("wind", cfg.wind), ("env.wind", cfg.env.wind)):
-        check_wind(key, value)
+    check_wind("wind", cfg.wind)
+    if cfg.resume is None:  # a run started before keeps the env.wind it recorded
+        _check_env_wind(cfg)
     for key in ("trajectories", "horizon", "batch_size", "max_off_iters"):
         _positive(f"algo.{key}", cfg.algo[key])
     for key in ("kl_threshold", "lr"):

@@ -241,11 +241,11 @@ class Snapshot:
         self.with_optimizer = with_optimizer
         self.tensors = [
             {k: v.detach().clone() for k, v in live.items()}
-            for live in self._live(population, optimizer, grads)
+            for live in self._kept(population, optimizer, grads)
         ]
         self.steps = optimizer.steps.clone()
 
-    def _live(
+    def _kept(
         self,
         population: PolicyPopulation,
         optimizer: PopulationAdam,
@@ -264,7 +264,7 @@ class Snapshot:
         mask: torch.Tensor,
     ) -> None:
         """Record the current state of the members where ``mask`` is True."""
-        for kept, live in zip(self.tensors, self._live(population, optimizer, grads), strict=True):
+        for kept, live in zip(self.tensors, self._kept(population, optimizer, grads), strict=True):
             _where_into(kept, mask, live)
         if self.with_optimizer:
             self.steps = torch.where(mask, optimizer.steps, self.steps)
@@ -278,7 +278,7 @@ class Snapshot:
         mask: torch.Tensor,
     ) -> None:
         """Return the members where ``mask`` is True to the recorded state."""
-        for kept, live in zip(self.tensors, self._live(population, optimizer, grads), strict=True):
+        for kept, live in zip(self.tensors, self._kept(population, optimizer, grads), strict=True):
             _where_into(live, mask, kept)
         if self.with_optimizer:
             optimizer.steps = torch.where(mask, self.steps, optimizer.steps)

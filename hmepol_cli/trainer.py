@@ -194,8 +194,12 @@ class Trainer:
                 for member in survivors:
                     member.directory.update(status="finished", epochs_done=int(self.cfg.epochs))
         finally:
-            self.world.close()  # a Gymnasium world's environments and worker processes
+            self.close()
         return [m.run_dir for m in self.members]
+
+    def close(self) -> None:
+        """Release what the world holds (a Gymnasium world's environments and processes)."""
+        self.world.close()
 
     @property
     def failures(self) -> dict[Path, str]:

@@ -14,6 +14,7 @@ import pandas as pd
 import pytest
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
 
 from hmepol_cli.cli import register_configs  # noqa: F401  (registers the schema and resolver)
 from hmepol_cli.config import validate
@@ -112,6 +113,33 @@ def test_thesis_presets_carry_table_values(hydra_compose):
     assert demo.epochs == 15 and demo.algo.trajectories == 40  # presets win over top-level defaults
     cfg = hydra_compose(config_name="config", overrides=["experiment=multigrid_alphamepol"])
     assert (cfg.algo.objective, cfg.algo.alpha, cfg.env.name) == ("cvar", 0.1, "multigrid")
+
+
+def test_presets_hold_only_what_they_change(hydra_compose):
+    """Every key of an experiment preset differs from what its world and algorithm compose to
+    without it (for the presets that leave the algorithm open, with at least one algorithm)."""
+    import yaml
+
+    def leaves(node: dict, prefix: str = ""):
+        for key, value in node.items():
+            if isinstance(value, dict):
+                yield from leaves(value, f"{prefix}{key}.")
+            else:
+                yield f"{prefix}{key}", value
+
+    for path in sorted((Path(__file__).parents[1] / "conf" / "experiment").glob("*.yaml")):
+        preset = yaml.safe_load(path.read_text())
+        chosen = [
+            f"{k.removeprefix('override /')}={v}"
+            for d in preset.pop("defaults")
+            for k, v in d.items()
+        ]
+        algos = [[]] if any(c.startswith("algo=") for c in chosen) else [
+            [f"algo={a}"] for a in ("mepol", "alphamepol", "hmepol")
+        ]  # fmt: skip
+        bases = [hydra_compose(config_name="config", overrides=[*chosen, *a]) for a in algos]
+        for key, value in leaves(preset):
+            assert any(OmegaConf.select(b, key) != value for b in bases), f"{path.name}: {key}"
 
 
 def test_slurm_launcher_config_composes(hydra_compose):

@@ -28,12 +28,12 @@ import itertools
 
 import torch
 
-from hmepol_cli.envs.cue import GOALS, MEMORY_HORIZON, CueCorridorWorld
 from hmepol_cli.finetune.task import GoalTask, TaskRollout, collect_episodes
 from hmepol_cli.finetune.trpo import TRPO, TRPOSettings
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
+from tests.cue_world import GOALS, MEMORY_HORIZON, CueCorridorWorld
 
 EPOCHS = 30
 EPISODES = 128  # per epoch, half in each configuration

@@ -176,3 +176,27 @@ def test_the_slurm_population_launcher_composes(tmp_path):
     launcher = cfg.hydra.launcher
     assert launcher._target_.endswith("PopulationLauncher") and launcher.max_members == 8
     assert launcher.inner._target_.endswith("SlurmLauncher") and launcher.inner.gpus_per_node == 1
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["seed=0,1,2", "algo=mepol,hmepol", "wind=0.1"],
+        ["experiment=demo", "+x=1,2", "seed=3"],
+        ["algo.lr=1e-3,1e-4", "policy.hidden=[8,8]", "epochs=range(1,3)"],
+    ],
+)
+def test_sweep_jobs_and_folders_are_named_as_hydra_names_them(overrides):
+    """hmepol_cli.sweeps (public override grammar) against Hydra's own basic sweeper and job
+    naming (private API, used here only to check)."""
+    from hydra._internal.config_loader_impl import get_overrides_dirname
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+
+    from hmepol_cli import sweeps
+
+    parsed = sweeps.parse(overrides)
+    theirs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+    assert sweeps.jobs(overrides) == theirs
+    for job in theirs:
+        expected = get_overrides_dirname(sweeps.parse(job), ["seed"], "_", "-")
+        assert sweeps.override_dirname(job, ["seed"], "_", "-") == expected

@@ -395,11 +395,6 @@ class NavigationWorld:
         )
         return inside.any(dim=-1)
 
-    def inside_arena(self, positions: torch.Tensor) -> torch.Tensor:
-        a = self.arena
-        x, y = positions[:, 0], positions[:, 1]
-        return (x >= a.x0) & (x <= a.x1) & (y >= a.y0) & (y <= a.y1)
-
     def free_mask(self, config: int, resolution: int = 1000) -> np.ndarray:
         """Raster of free space, (resolution, resolution) bool, row 0 at y0 (bottom, south)."""
         a = self.arena

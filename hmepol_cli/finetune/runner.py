@@ -28,6 +28,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
+from hmepol_cli.algorithms import SCRATCH
 from hmepol_cli.config import check_device, check_wind, parse_bptt, validate_policy
 from hmepol_cli.envs import ENVIRONMENTS, World, make_world
 from hmepol_cli.envs.base import edge_rule
@@ -57,7 +58,6 @@ COLUMNS = [
     "epoch", "target", "config", "return", "success_rate", "kl", "init", "algo_init", "seed",
     "config_name", "episode_length", "accepted", "init_epoch", "seconds",
 ]  # fmt: skip
-SCRATCH = "scratch"
 SCRATCH_ENV = {"name": "slope", "wind": 0.4, "edge": "slide"}  # init=none's world, if none named
 
 
@@ -109,7 +109,7 @@ def trpo_settings(cfg: DictConfig, bptt: int | None) -> TRPOSettings:
 
 
 def _is_scratch(init: object) -> bool:
-    return init is None or str(init).strip().lower() in ("none", "null", "", SCRATCH)
+    return init is None or str(init).strip().lower() in ("none", "null", "", SCRATCH.name)
 
 
 @dataclass
@@ -139,7 +139,7 @@ def initial_policy(cfg: DictConfig, device: torch.device) -> Start:
     if _is_scratch(cfg.init):
         env = OmegaConf.create({**SCRATCH_ENV, **override})
         bptt = parse_bptt("1" if chosen_bptt is None else chosen_bptt)
-        return Start(None, env, "none", SCRATCH, bptt)
+        return Start(None, env, "none", SCRATCH.name, bptt)
     text = str(Path(str(cfg.init)).expanduser())
     if not Path(text.rpartition("@")[0] if "@" in text else text).exists():
         raise ConfigError(

@@ -56,6 +56,8 @@ RUN_SPECIFIC_KEYS = {
     "matmul_precision",
     "eval.every",
     "env.workers",  # processes stepping a Gymnasium world: the same numbers with any count
+    "diagnostics",  # what is recorded, not what is computed
+    "checkpoint.keep_every",
     # The effective wind is read once (run.json) and stored under the synthetic key "wind".
     "wind",
     "env.wind",
