@@ -414,7 +414,7 @@ def _report(args: list[str]) -> None:
 def _show(args: list[str]) -> None:
     import argparse
 
-    from hmepol_cli.envs import ENVIRONMENTS, NavigationWorld, make_world
+    from hmepol_cli.envs import ENVIRONMENTS, make_world
     from hmepol_cli.envs.render import show_world
 
     parser = argparse.ArgumentParser(
@@ -431,7 +431,7 @@ def _show(args: list[str]) -> None:
         fail(f"unknown option(s) {', '.join(sorted(unknown))}; use env=NAME and wind=FORCE")
     name = values.get("env", "slope")
     # Only the 2-D worlds are maps; a Gymnasium world has no walls to draw.
-    maps = [n for n, world in ENVIRONMENTS.items() if issubclass(world, NavigationWorld)]
+    maps = [n for n, world in ENVIRONMENTS.items() if world.maps]
     if name not in maps:
         fail(f"env={name!r} cannot be drawn; choose one of: {', '.join(maps)}")
     try:

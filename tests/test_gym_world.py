@@ -376,3 +376,12 @@ def test_the_command_trains_and_finetunes_in_a_gymnasium_world(tmp_path):
            f"output_dir={tmp_path / 'ft'}", cwd=tmp_path)  # fmt: skip
     returns = pd.read_csv(tmp_path / "ft" / "finetune.csv")["return"]
     assert len(returns) == 2 and (returns <= 0).all()  # MountainCar charges for every push
+
+
+def test_both_kinds_of_world_implement_the_world_protocol():
+    from hmepol_cli.envs import World
+    from hmepol_cli.envs.slope import SlopeWorld
+
+    for world in (SlopeWorld(), walk_world()):
+        assert isinstance(world, World)
+        assert world.maps == isinstance(world, SlopeWorld)

@@ -7,17 +7,16 @@ from hmepol_cli.envs.corridor import CorridorWorld
 from hmepol_cli.envs.gym_world import GymWorld
 from hmepol_cli.envs.multigrid import MultiGridWorld
 from hmepol_cli.envs.slope import SlopeWorld
+from hmepol_cli.envs.world import World
 
 # name -> world class; a new world is one module, one entry here and one conf/env/<name>.yaml.
 # "gym" is any Gymnasium environment (env.id=...); presets such as conf/env/ant_xy.yaml name it.
-ENVIRONMENTS: dict[str, type[NavigationWorld] | type[GymWorld]] = {
+ENVIRONMENTS: dict[str, type[World]] = {
     "slope": SlopeWorld,
     "corridor": CorridorWorld,
     "multigrid": MultiGridWorld,
     "gym": GymWorld,
 }
-
-World = NavigationWorld | GymWorld  # what the trainer, the rollout and the evaluation talk to
 
 
 def make_world(env_cfg) -> World:
