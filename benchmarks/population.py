@@ -43,7 +43,7 @@ from hmepol_cli.trainer import Trainer  # noqa: E402
 def member_configs(setting: str, seeds: list[int], args: argparse.Namespace) -> list:
     """The thesis preset of ``setting`` (env-algo) for each seed, every iteration forced."""
     env, algo = setting.split("-")
-    device = [f"device={args.device}", f"matmul_precision={args.precision}"]
+    device = [f"device={args.device}", f"precision={args.precision}"]
     return [
         thesis_config(env, algo, [*device, f"seed={seed}", *args.override], args.iters)
         for seed in seeds
@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=None)
     parser.add_argument("--iters", type=int, default=None, help="off-policy iterations")
     parser.add_argument("--epochs", type=int, default=2, help="timed epochs per size")
-    parser.add_argument("--precision", default="highest", choices=("highest", "high"))
+    parser.add_argument("--precision", default="float32", choices=("float32", "bf16", "tf32"))
     parser.add_argument("--threads", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("outputs/bench"))
     parser.add_argument("--override", nargs="*", default=[])
@@ -227,7 +227,7 @@ def markdown(meta: dict, rows: list[dict]) -> str:
     lines = [
         f"Population vs separate runs: {meta['setting']}, {meta['iters']} off-policy iterations, "
         f"{meta['device']}, torch {meta['torch']}, {meta['threads']} threads, "
-        f"matmul precision {meta['precision']}, load {meta['load']}.",
+        f"precision {meta['precision']}, load {meta['load']}.",
         "",
         f"| S | population s/epoch | per seed | {separate} | speed-up | update TFLOP/s "
         "| of matmul rate |",

@@ -37,8 +37,9 @@ from hmepol_cli.trainer import Trainer  # noqa: E402
 PRESETS = ("slope_mepol", "slope_hmepol", "corridor_mepol", "corridor_hmepol")
 # precision name -> the overrides that select it
 PRECISIONS: dict[str, list[str]] = {
-    "float64": ["dtype=float64"],
-    "float32": ["dtype=float32"],
+    "float64": ["precision=float64"],
+    "float32": ["precision=float32"],
+    "bf16": ["precision=bf16"],
 }
 
 

@@ -137,7 +137,9 @@ def dtype_check(args: argparse.Namespace, work: Path) -> dict:
     small = ["algo.trajectories=50", "algo.max_off_iters=10", *args.override]
 
     def trainer(dtype: str) -> Trainer:  # same seed: same initial weights in either dtype
-        return Trainer(thesis_config("slope", "hmepol", [*small, f"dtype={dtype}"]), work / dtype)
+        return Trainer(
+            thesis_config("slope", "hmepol", [*small, f"precision={dtype}"]), work / dtype
+        )
 
     t64 = trainer("float64")
     a, k = t64.cfg.algo, t64.cfg.estimator.k

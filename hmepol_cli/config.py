@@ -15,7 +15,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig
 
 from hmepol_cli.errors import ConfigError
-from hmepol_cli.seeding import DTYPES
+from hmepol_cli.precision import PRECISIONS, precision_of
 
 
 @dataclass
@@ -128,9 +128,9 @@ class Config:
     # A population: runs that differ only in their seed, trained together (one per seed).
     seeds: list[int] | None = None
     device: str = "cpu"  # cpu | cuda | auto
-    dtype: str = "float32"  # float32 | float64
-    # float32 matrix products on a GPU: highest (exact float32) | high (TF32, ~3x faster)
-    matmul_precision: str = "highest"
+    # float32 | float64 | bf16 (the hidden layers' products in bfloat16, CPU or GPU) | tf32
+    # (TF32 products, GPU only); hmepol_cli/precision.py says where each applies
+    precision: str = "float32"
     vmap: str = "auto"  # population calls: auto (vmap on cuda, a loop on cpu) | on | off
     cuda_graphs: bool = True  # on a GPU, replay each rollout's steps as one captured CUDA graph
     epochs: int = 500
@@ -212,6 +212,17 @@ def check_device(value: str) -> None:
         )
 
 
+def check_precision(value: str, device: str) -> None:
+    import torch
+
+    _one_of("precision", value, tuple(PRECISIONS))
+    on_cpu = device == "cpu" or (device == "auto" and not torch.cuda.is_available())
+    if PRECISIONS[value].gpu_only and on_cpu:
+        raise ConfigError(
+            f"precision={value!r} is a GPU precision; on a CPU choose float32, float64 or bf16"
+        )
+
+
 def _one_of(key: str, value: object, allowed: tuple[str, ...]) -> None:
     if value not in allowed:
         raise ConfigError(f"{key}={value!r} is not allowed; choose one of: {', '.join(allowed)}")
@@ -267,8 +278,7 @@ def validate(cfg: DictConfig) -> None:
     _one_of("algo.name", cfg.algo.name, tuple(ALGORITHMS))
     _one_of("algo.objective", cfg.algo.objective, tuple(OBJECTIVES))
     check_device(cfg.device)
-    _one_of("dtype", cfg.dtype, tuple(DTYPES))
-    _one_of("matmul_precision", cfg.matmul_precision, ("highest", "high", "medium"))
+    check_precision(precision_of(cfg).name, cfg.device)
     _one_of("vmap", cfg.vmap, ("auto", "on", "off"))
     _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
     _one_of("algo.backtracking", cfg.algo.backtracking, BACKTRACKING)

@@ -46,6 +46,7 @@ from hmepol_cli.config import parse_bptt
 from hmepol_cli.envs import World
 from hmepol_cli.objectives import objective
 from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
+from hmepol_cli.precision import PRECISIONS, Precision, precision_of
 from hmepol_cli.rollout import Rollout, collect, draw_configurations
 
 
@@ -69,6 +70,7 @@ class OffPolicySettings:
     exact_kl: bool  # judge steps by the KL of likelihoods over the whole history
     bptt: int | None  # steps of the recursion the likelihoods recompute (None: all)
     diagnostics: bool = False  # record every step (StepRecord), the exact KL among them
+    precision: Precision = PRECISIONS["float32"]  # how the likelihoods' products are computed
 
     @classmethod
     def from_config(cls, cfg: DictConfig, history_size: int) -> OffPolicySettings:
@@ -91,6 +93,7 @@ class OffPolicySettings:
             exact_kl=a.trust_region == "exact" and history_size > 0,
             bptt=parse_bptt(cfg.policy.bptt),
             diagnostics=bool(cfg.get("diagnostics", False)),
+            precision=precision_of(cfg),
         )
 
 
@@ -268,6 +271,7 @@ class Surrogate:
         self.batches = neighbours.radius.shape[0] // len(members)  # M per member
         self.row_of = {int(m): i for i, m in enumerate(members.tolist())}
         self.behaviour: torch.Tensor | None = None  # log pi_theta(a_t | h_t), as theta' computes it
+        self.behaviour_exact: torch.Tensor | None = None  # the same over the whole history
         recursive = population.history_size > 0
         self.with_exact = recursive and (settings.exact_kl or settings.diagnostics)
 
@@ -284,7 +288,8 @@ class Surrogate:
         histories = r.histories.index_select(0, rows)
         who = self.members.index_select(0, rows)
         alive = None if r.alive is None else r.alive.index_select(0, rows)
-        target = self.population.log_prob(who, inputs, actions, histories, s.bptt)
+        with s.precision.products(inputs.device, s.bptt):
+            target = self.population.log_prob(who, inputs, actions, histories, s.bptt)
         if self.behaviour is None:
             self.behaviour = target.detach()
         behaviour = self.behaviour.index_select(0, rows)
@@ -311,8 +316,11 @@ class Surrogate:
         if not self.with_exact:
             return None
         s = self.settings
-        exact = self.population.log_prob(who, inputs, actions, histories, None)
-        sampling = self.rollout.log_probs.index_select(0, rows)
+        with s.precision.products(inputs.device, None):
+            exact = self.population.log_prob(who, inputs, actions, histories, None)
+        if self.behaviour_exact is None:  # theta' = theta: the sampling likelihoods, so computed
+            self.behaviour_exact = exact
+        sampling = self.behaviour_exact.index_select(0, rows)
         weights = estimators.importance_weights(
             _live(exact - sampling, alive).flatten(0, 1), s.batch_size
         )

@@ -32,6 +32,7 @@ from hmepol_cli.evaluation import evaluate_and_save
 from hmepol_cli.mepol import EpochStats, OffPolicySettings
 from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
+from hmepol_cli.precision import precision_of
 from hmepol_cli.rundir import (
     CHECKPOINT,
     EVAL_DIR,
@@ -45,7 +46,6 @@ from hmepol_cli.rundir import (
     writing,
 )
 from hmepol_cli.seeding import (
-    DTYPES,
     get_device,
     keep_freed_memory,
     make_generator,
@@ -83,9 +83,10 @@ class Trainer:
             raise ValueError("one run directory per member config, and at least one member")
         self.cfg = cfg = cfgs[0]  # what the members share: everything but the seed
         self.device = get_device(cfg.device)
-        self.dtype = DTYPES[cfg.dtype]
+        precision = precision_of(cfg)
+        self.dtype = precision.dtype
         if self.device.type == "cuda":
-            torch.set_float32_matmul_precision(cfg.matmul_precision)
+            torch.set_float32_matmul_precision(precision.matmul)
         keep_freed_memory()
         self.world = make_world(cfg.env).to(self.device, self.dtype)
         policies = []

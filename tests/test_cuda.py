@@ -55,7 +55,7 @@ def test_a_captured_rollout_replays_what_the_steps_compute(tmp_path, algo, polic
     streams (float64)."""
     from hmepol_cli.trainer import Trainer
 
-    overrides = (f"algo={algo}", f"policy={policy}", f"policy.bptt={bptt}", "dtype=float64")
+    overrides = (f"algo={algo}", f"policy={policy}", f"policy.bptt={bptt}", "precision=float64")
     cfgs = [compose_cfg(*overrides, "device=cuda", f"seed={s}") for s in (0, 1)]
     trainer = Trainer(cfgs, [tmp_path / f"seed{s}" for s in (0, 1)])
     trainer.epoch()

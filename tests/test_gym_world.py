@@ -224,7 +224,7 @@ def test_the_epoch_entropy_is_that_of_the_chosen_features(tmp_path):
     """features=[1] (the walker's last move): an epoch's mini-batch entropies equal eq. 2.6
     computed by brute force on that column of the same rollout (a second trainer with the same
     seed replays the epoch's draws)."""
-    overrides = (*WALK, "env.features=[1]", "estimator.k=4", "dtype=float64")
+    overrides = (*WALK, "env.features=[1]", "estimator.k=4", "precision=float64")
     first = Trainer(compose_cfg(*overrides), tmp_path / "a")
     (stats,) = first.epoch()
     again = Trainer(compose_cfg(*overrides), tmp_path / "b")

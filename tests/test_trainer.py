@@ -105,7 +105,9 @@ def compare_vmap_with_the_member_loop(tmp_path, *overrides: str, grad_rtol: floa
     and a loop over them (what a CPU runs) give the same rollout, likelihoods and gradients."""
     rollouts, values = [], []
     for vmap in ("off", "on"):
-        trainer = population(tmp_path / vmap, (0, 1), "dtype=float64", *overrides, f"vmap={vmap}")
+        trainer = population(
+            tmp_path / vmap, (0, 1), "precision=float64", *overrides, f"vmap={vmap}"
+        )
         assert trainer.population._vmapped() == (vmap == "on")
         gens = [m.generator for m in trainer.members]
         configurations = torch.stack([draw_configurations(trainer.world, 10, 5, g) for g in gens])
@@ -159,7 +161,7 @@ def first_step(tmp_path, trust_region: str, kl_threshold: float):
         "policy.bptt=1",
         "policy.encoder_hidden=[]",
         "policy.init_mean_scale=1",
-        "dtype=float64",
+        "precision=float64",
         "algo.horizon=200",
         "algo.lr=1e-4",
         "algo.max_off_iters=1",
@@ -227,7 +229,7 @@ def test_a_diverging_run_says_so_in_its_log_and_its_csv(tmp_path, caplog):
 @pytest.mark.parametrize("algo", ["mepol", "alphamepol", "hmepol"])
 def test_float64_runs_every_algorithm_and_policy(tmp_path, algo, policy):
     trainer = tiny_trainer(
-        tmp_path, f"algo={algo}", f"policy={policy}", "dtype=float64", "policy.bptt=2"
+        tmp_path, f"algo={algo}", f"policy={policy}", "precision=float64", "policy.bptt=2"
     )
     assert all(v.dtype == torch.float64 for v in trainer.population.params.values())
     (stats,) = trainer.epoch()
@@ -239,7 +241,7 @@ def test_float64_runs_every_algorithm_and_policy(tmp_path, algo, policy):
 # ------------------------------------------------------------------ diagnostics
 def test_exact_and_one_step_kl_agree_at_full_bptt_and_are_zero_at_the_start(tmp_path):
     trainer = tiny_trainer(
-        tmp_path, "algo=hmepol", "policy.bptt=full", "dtype=float64", "diagnostics=true"
+        tmp_path, "algo=hmepol", "policy.bptt=full", "precision=float64", "diagnostics=true"
     )
     gen = trainer.members[0].generator
     configurations = draw_configurations(trainer.world, 10, 5, gen)[None]

@@ -10,16 +10,47 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
+
+from hmepol_cli.precision import lowered_history
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
 
 
-def mlp(sizes: list[int], out_activation: str | None = None) -> nn.Sequential:
-    """Linear layers with ReLU between them, and ``out_activation`` (relu, tanh) after the last."""
+class OutputLinear(nn.Linear):
+    """The layer that gives the action mean: its product is never lowered in precision
+    (``precision=bf16`` lowers the hidden layers'), so the likelihoods are computed from
+    full-precision means. Its input is cast to the weights' dtype."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(x.device.type, enabled=False):
+            return F.linear(x.to(self.weight.dtype), self.weight, self.bias)
+
+
+class HistoryLinear(nn.Linear):
+    """A layer whose output is (part of) the history h'_t: in full precision while the
+    likelihoods run the recursion over several steps (``bptt`` > 1), where rounding would
+    accumulate; a hidden layer like any other at bptt = 1, where h'_t is computed once from
+    the stored h'_{t-1} (``hmepol_cli.precision.lowered_history``)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if lowered_history():
+            return super().forward(x)
+        with torch.autocast(x.device.type, enabled=False):
+            return F.linear(x.to(self.weight.dtype), self.weight, self.bias)
+
+
+def mlp(
+    sizes: list[int], out_activation: str | None = None, output: type[nn.Linear] = OutputLinear
+) -> nn.Sequential:
+    """Linear layers with ReLU between them, and ``out_activation`` (relu, tanh) after the last,
+    which is of kind ``output``: :class:`OutputLinear` for an action mean,
+    :class:`HistoryLinear` for a history, ``nn.Linear`` for a hidden layer's output."""
     layers: list[nn.Module] = []
     for i in range(len(sizes) - 1):
-        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        kind = output if i == len(sizes) - 2 else nn.Linear
+        layers.append(kind(sizes[i], sizes[i + 1]))
         if i < len(sizes) - 2:
             layers.append(nn.ReLU())
     if out_activation is not None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from hmepol_cli.policies.base import Policy, mlp
+from hmepol_cli.policies.base import HistoryLinear, OutputLinear, Policy, mlp
 
 
 class RecursivePolicy(Policy):
@@ -35,6 +35,7 @@ class RecursivePolicy(Policy):
         self.encoder = mlp(
             [state_dim + history_size, *encoder_hidden, history_size],
             out_activation=encoder_activation,
+            output=HistoryLinear,
         )
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
@@ -71,9 +72,13 @@ class TwoHeadPolicy(Policy):
     ):
         super().__init__(state_dim, action_dim, **init)
         self.history_size = history_size
-        self.trunk = mlp([state_dim + history_size, *hidden], out_activation="relu")
-        self.mean_head = nn.Sequential(nn.Linear(hidden[-1], action_dim))
-        self.history_head = mlp([hidden[-1], history_size], out_activation=encoder_activation)
+        self.trunk = mlp(
+            [state_dim + history_size, *hidden], out_activation="relu", output=nn.Linear
+        )
+        self.mean_head = nn.Sequential(OutputLinear(hidden[-1], action_dim))
+        self.history_head = mlp(
+            [hidden[-1], history_size], out_activation=encoder_activation, output=HistoryLinear
+        )
         self.initialise(self.mean_head[-1])
 
     @classmethod
@@ -105,8 +110,8 @@ class GRUPolicy(Policy):
     ):
         super().__init__(state_dim, action_dim, **init)
         self.history_size = history_size
-        self.input_gates = nn.Linear(state_dim, 3 * history_size)  # reset, update, new
-        self.hidden_gates = nn.Linear(history_size, 3 * history_size)
+        self.input_gates = HistoryLinear(state_dim, 3 * history_size)  # reset, update, new
+        self.hidden_gates = HistoryLinear(history_size, 3 * history_size)
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
 
@@ -138,8 +143,8 @@ class LSTMPolicy(Policy):
         super().__init__(state_dim, action_dim, **init)
         self.cell_size = history_size
         self.history_size = 2 * history_size  # [h, c]
-        self.input_gates = nn.Linear(state_dim, 4 * history_size)  # input, forget, cell, output
-        self.hidden_gates = nn.Linear(history_size, 4 * history_size)
+        self.input_gates = HistoryLinear(state_dim, 4 * history_size)  # input, forget, cell, output
+        self.hidden_gates = HistoryLinear(history_size, 4 * history_size)
         self.head = mlp([history_size, *hidden, action_dim])
         self.initialise(self.head[-1])
 

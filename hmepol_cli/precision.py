@@ -1,0 +1,84 @@
+"""Where lower precision is used, and where it is not (issue 22).
+
+An epoch's cost is the off-policy loop's forward and backward passes over all particles, and
+those are the hidden layers' (300, 300) matrix products. ``precision`` chooses how they run:
+
+- ``float32`` (default): everything in float32, exact float32 products on a GPU;
+- ``float64``: everything in float64 (the public reference's precision);
+- ``bf16``: the hidden layers' products, forward and backward, in bfloat16 (float32
+  accumulation) through ``torch.autocast``, on a CPU with AVX-512 BF16 or a GPU; weights,
+  particles, Adam's state and the layer that gives the action mean stay float32
+  (:class:`hmepol_cli.policies.base.OutputLinear`), so the likelihoods, the cumulative
+  log-ratios, the importance weights, the KL and the kNN volumes are computed from float32
+  numbers; the layers whose output is the history h'_t (an encoder's last layer, a GRU's or
+  LSTM's gates; ``HistoryLinear``) stay float32 when the likelihoods run the recursion over
+  several steps (``policy.bptt`` > 1 and the exact KL), where rounding would accumulate, and are
+  lowered at ``bptt = 1``, where h'_t is computed once from the stored h'_{t-1}. Rollouts act
+  in float32;
+- ``tf32``: float32 storage, TF32 matrix products on a GPU (``torch.set_float32_matmul_precision
+  ("high")``); a GPU precision only.
+
+Whatever the precision, the likelihoods the sampling policy is compared with are computed the
+same way as the target's (:class:`hmepol_cli.mepol.Surrogate`), so that at theta' = theta the
+log-ratios, and both KLs, are exactly 0.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from dataclasses import dataclass
+
+import torch
+
+_LOWERED_HISTORY = contextvars.ContextVar("lowered_history", default=False)
+
+
+def lowered_history() -> bool:
+    """Whether layers that output the history may run in the lower precision now (bptt = 1)."""
+    return _LOWERED_HISTORY.get()
+
+
+@dataclass(frozen=True)
+class Precision:
+    name: str
+    dtype: torch.dtype  # weights, particles, optimizer state
+    autocast: torch.dtype | None = None  # the hidden layers' products in the off-policy loop
+    matmul: str = "highest"  # torch.set_float32_matmul_precision on a GPU
+    gpu_only: bool = False
+
+    @contextlib.contextmanager
+    def products(self, device: torch.device, bptt: int | None = None):
+        """The context the off-policy loop's likelihoods are computed in; ``bptt`` = 1: the
+        history layers are hidden layers too (h'_t computed once, from the stored h'_{t-1})."""
+        if self.autocast is None:
+            yield
+            return
+        token = _LOWERED_HISTORY.set(bptt == 1)
+        try:
+            with torch.autocast(device.type, dtype=self.autocast):
+                yield
+        finally:
+            _LOWERED_HISTORY.reset(token)
+
+
+PRECISIONS: dict[str, Precision] = {
+    p.name: p
+    for p in (
+        Precision("float32", torch.float32),
+        Precision("float64", torch.float64),
+        Precision("bf16", torch.float32, autocast=torch.bfloat16),
+        Precision("tf32", torch.float32, matmul="high", gpu_only=True),
+    )
+}
+
+
+def precision_of(cfg) -> Precision:
+    """The precision of a run's config; a run started before ``precision`` existed said it with
+    ``dtype`` (float32 | float64) and ``matmul_precision`` (high: TF32)."""
+    name = cfg.get("precision")
+    if name is None:
+        name = str(cfg.get("dtype", "float32"))
+        if name == "float32" and cfg.get("matmul_precision", "highest") != "highest":
+            name = "tf32"
+    return PRECISIONS[str(name)]
