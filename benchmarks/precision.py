@@ -32,6 +32,7 @@ import torch  # noqa: E402
 from benchmarks.run import thesis_config  # noqa: E402
 from hmepol_cli import estimators, mepol  # noqa: E402
 from hmepol_cli.rollout import Rollout, collect, draw_configurations  # noqa: E402
+from hmepol_cli.rundir import load_checkpoint, resolve_checkpoint  # noqa: E402
 from hmepol_cli.trainer import Trainer  # noqa: E402
 
 PRESETS = ("slope_mepol", "slope_hmepol", "corridor_mepol", "corridor_hmepol")
@@ -95,14 +96,21 @@ def one_update(trainer: Trainer, rollout: Rollout, neighbours) -> dict:
 
 
 def validate_preset(preset: str, state: str, args: argparse.Namespace, work: Path) -> list[dict]:
+    """``state``: initial, saturated, or a trained policy: ``<run dir>@<epochs>`` (a kept
+    checkpoint of a run of this preset) or a run directory."""
     env, algo = preset.split("_")
     base = [f"algo.trajectories={args.trajectories}", *args.override]
+    trained = None
+    if state not in ("initial", "saturated"):
+        trained = load_checkpoint(resolve_checkpoint(state)[1])["policy"]
 
     def trainer(name: str) -> Trainer:  # the same seed: the same initial weights, cast
         cfg = thesis_config(env, algo, [*base, *PRECISIONS[name]], iters=1)
-        made = Trainer(cfg, work / f"{preset}-{state}-{name}")
+        made = Trainer(cfg, work / f"{preset}-{len(state)}-{name}")
         if state == "saturated":
             saturate(made)
+        if trained is not None:
+            made.population.load_member_state_dict(0, trained)
         return made
 
     t64 = trainer("float64")
@@ -129,7 +137,7 @@ def validate_preset(preset: str, state: str, args: argparse.Namespace, work: Pat
         rows.append(
             {
                 "preset": preset,
-                "policy": state,
+                "policy": state if trained is None else f"trained ({Path(state).name[-24:]})",
                 "precision": name,
                 "log_prob_max_abs_error": float(
                     (got["log_probs"] - reference["log_probs"]).abs().max()
@@ -173,7 +181,12 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=PRESETS)
-    parser.add_argument("--states", nargs="+", default=["initial", "saturated"])
+    parser.add_argument(
+        "--states",
+        nargs="+",
+        default=["initial", "saturated"],
+        help="initial | saturated | a trained policy of the preset: <run dir>[@<epochs>]",
+    )
     parser.add_argument("--trajectories", type=int, default=100)
     parser.add_argument("--out", type=Path, default=Path("outputs/bench"))
     parser.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides")

@@ -103,6 +103,9 @@ class AlarmConfig:
     history_bound: float = 1e3  # largest |h'_t| of an epoch's rollout
     action_bound: float = 10.0  # largest |a_t| drawn (50x the action bound)
     stall_epochs: int = 10  # epochs in a row without an accepted off-policy step
+    # precision=bf16: the accepted step's KL, recomputed in full precision every epoch, differs
+    # from the lowered one by more than this share
+    precision_drift: float = 0.01
 
 
 @dataclass
@@ -300,7 +303,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"algo.lr_backtrack_factor={cfg.algo.lr_backtrack_factor!r} must be > 1")
     if cfg.algo.lr_backtrack_tries < 0:
         raise ConfigError(f"algo.lr_backtrack_tries={cfg.algo.lr_backtrack_tries!r} must be >= 0")
-    for key in ("history_bound", "action_bound", "stall_epochs"):
+    for key in ("history_bound", "action_bound", "stall_epochs", "precision_drift"):
         _positive(f"alarms.{key}", cfg.alarms[key])
     if cfg.algo.trajectories % cfg.algo.batch_size:
         raise ConfigError(

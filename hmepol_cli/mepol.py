@@ -121,6 +121,9 @@ class UpdateResult:
     backtracks: int  # learning-rate reductions
     lr: float  # the learning rate of the last step tried
     kl_exact: float = math.nan  # the exact KL of the accepted policy (diagnostics)
+    # A lowered precision (bf16): the accepted policy's KL and mean IW entropy in full precision
+    kl_full_precision: float = math.nan
+    entropy_iw_full_precision: float = math.nan
     steps: list[StepRecord] = field(default_factory=list)  # every step tried (diagnostics)
 
 
@@ -272,6 +275,9 @@ class Surrogate:
         self.row_of = {int(m): i for i, m in enumerate(members.tolist())}
         self.behaviour: torch.Tensor | None = None  # log pi_theta(a_t | h_t), as theta' computes it
         self.behaviour_exact: torch.Tensor | None = None  # the same over the whole history
+        # A lowered precision is checked once an epoch against the same estimate in full.
+        self.behaviour_full: torch.Tensor | None = None
+        self.behaviour_exact_full: torch.Tensor | None = None
         recursive = population.history_size > 0
         self.with_exact = recursive and (settings.exact_kl or settings.diagnostics)
 
@@ -292,6 +298,12 @@ class Surrogate:
             target = self.population.log_prob(who, inputs, actions, histories, s.bptt)
         if self.behaviour is None:
             self.behaviour = target.detach()
+            if s.precision.autocast is not None:  # the full-precision check's baselines
+                with torch.no_grad():
+                    log_prob = self.population.log_prob
+                    self.behaviour_full = log_prob(who, inputs, actions, histories, s.bptt)
+                    if s.exact_kl and self.with_exact:
+                        self.behaviour_exact_full = log_prob(who, inputs, actions, histories, None)
         behaviour = self.behaviour.index_select(0, rows)
         nb = _select_batches(self.neighbours, rows, self.batches)
         weights = estimators.importance_weights(
@@ -308,6 +320,29 @@ class Surrogate:
             kl_one_step=one_step,
             kl_exact=exact,
         )
+
+    @torch.no_grad()
+    def full_precision(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """With a lowered precision: the KL the trust region judges by and the mean IW
+        entropy at the current parameters, computed in full precision, for every row (the
+        check of the lowered one). -> (KL (R,), IW entropy (R,)), or None in full precision."""
+        if self.behaviour_full is None:
+            return None
+        s, r, who = self.settings, self.rollout, self.members
+        rows = torch.arange(len(who), device=who.device)
+        nb = _select_batches(self.neighbours, rows, self.batches)
+
+        def weights(bptt: int | None, behaviour: torch.Tensor) -> torch.Tensor:
+            target = self.population.log_prob(who, r.inputs, r.actions, r.histories, bptt)
+            log_ratios = _live(target - behaviour, r.alive).flatten(0, 1)
+            return estimators.importance_weights(log_ratios, s.batch_size)
+
+        objective_weights = weights(s.bptt, self.behaviour_full)
+        entropy = s.estimator.iw_entropy(objective_weights, nb).view(len(rows), -1).mean(-1)
+        if s.exact_kl and self.behaviour_exact_full is not None:
+            objective_weights = weights(None, self.behaviour_exact_full)
+        kl = s.estimator.kl(objective_weights, nb).view(len(rows), -1).mean(-1)
+        return kl, entropy
 
     @torch.no_grad()
     def _exact_kl(self, who, inputs, actions, histories, alive, rows, nb) -> torch.Tensor | None:
@@ -412,6 +447,10 @@ def off_policy_loop(
         last_accepted.take(population, optimizer, grads, accepted)
         last_accepted.restore(population, optimizer, grads, rejected)
     lr_host = lr.tolist()
+    check = surrogate.full_precision()  # a lowered precision, checked once an epoch
+    kl_full, entropy_full = (
+        ([math.nan] * len(members),) * 2 if check is None else [c.tolist() for c in check]
+    )
     return [
         UpdateResult(
             entropies=accepted_entropies[surrogate.row_of[m]],
@@ -420,6 +459,8 @@ def off_policy_loop(
             backtracks=backtracks[m],
             lr=lr_host[m],
             kl_exact=accepted_exact[surrogate.row_of[m]] if s.diagnostics else math.nan,
+            kl_full_precision=kl_full[surrogate.row_of[m]],
+            entropy_iw_full_precision=entropy_full[surrogate.row_of[m]],
             steps=records[m],
         )
         for m in members.tolist()

@@ -266,11 +266,21 @@ class Trainer:
         member.directory.update(epochs_done=epoch + 1)
         if diverged:
             self._warn_divergence(s, epoch, stats)
+        drift = _precision_drift(stats)
+        if drift > alarms.precision_drift:
+            log.warning(
+                "%s: epoch %d: the lowered precision's KL is %.1f%% off the full-precision one "
+                "(alarms.precision_drift = %g): use precision=float32 from here",
+                member.run_dir,
+                epoch,
+                100 * drift,
+                alarms.precision_drift,
+            )
         member.stalled_for = member.stalled_for + 1 if stats.update.off_iters == 0 else 0
         if member.stalled_for >= alarms.stall_epochs:
             log.warning(
                 "%s: no off-policy step accepted for %d epochs (to epoch %d): the trust region "
-                "rejects every step even after %d learning-rate halvings",
+                "rejects every step even after %d learning-rate reductions",
                 member.run_dir,
                 member.stalled_for,
                 epoch,
@@ -337,6 +347,15 @@ class Trainer:
         )
 
 
+def _precision_drift(stats: EpochStats) -> float:
+    """Relative difference of the accepted step's KL in the lowered and in full precision
+    (0 in full precision, or when both are ~0)."""
+    u = stats.update
+    if not math.isfinite(u.kl_full_precision) or u.kl_full_precision < 1e-12:
+        return 0.0
+    return abs(u.kl - u.kl_full_precision) / u.kl_full_precision
+
+
 def _epoch_rows(
     epoch: int, stats: EpochStats, diverged: bool, n_configurations: int
 ) -> tuple[dict, pd.DataFrame, pd.DataFrame | None]:
@@ -350,6 +369,8 @@ def _epoch_rows(
         entropy_iw=float(u.entropies.mean()),
         kl=u.kl,
         kl_exact=u.kl_exact,
+        kl_full_precision=u.kl_full_precision,
+        entropy_iw_full_precision=u.entropy_iw_full_precision,
         off_iters=u.off_iters,
         backtracks=u.backtracks,
         lr=u.lr,

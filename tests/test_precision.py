@@ -3,6 +3,9 @@ trust region starts from exactly 0 whatever the precision."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -103,3 +106,30 @@ def test_precisions_are_checked_and_old_runs_keep_theirs():
         == "tf32"
     )
     assert precision_of(OmegaConf.create({"precision": "bf16"})).name == "bf16"
+
+
+def test_a_bf16_epoch_is_checked_against_full_precision_and_float32_is_not(tmp_path):
+    """The accepted policy's KL and IW entropy, recomputed in float32 at the end of the loop:
+    the same numbers a float32 surrogate gives at those parameters."""
+    trainer = tiny_trainer(tmp_path, "algo=hmepol", "precision=bf16")
+    gen = trainer.members[0].generator
+    configurations = draw_configurations(trainer.world, 10, 5, gen)[None]
+    rollout = collect(trainer.world, trainer.population, None, configurations, 40, [gen])
+    particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
+    neighbours = trainer.settings.estimator.search(particles)
+    members = torch.tensor([0])
+    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
+    (result,) = mepol.off_policy_loop(
+        trainer.population, trainer.optimizer, surrogate, members, trainer.settings
+    )
+    full = dataclasses.replace(trainer.settings, precision=PRECISIONS["float32"])
+    reference = mepol.Surrogate(trainer.population, rollout, neighbours, members, full)
+    reference.behaviour = surrogate.behaviour_full  # the sampling likelihoods, in float32
+    estimate = reference(torch.tensor([0]))
+    assert result.kl_full_precision == pytest.approx(float(estimate.kl.detach()), rel=1e-6)
+    assert result.entropy_iw_full_precision == pytest.approx(
+        float(estimate.entropies.detach().mean()), rel=1e-6
+    )
+    assert result.kl_full_precision == pytest.approx(result.kl, rel=0.05)  # tiny, early: close
+    (plain,) = tiny_trainer(tmp_path / "f32", "algo=hmepol").epoch()
+    assert math.isnan(plain.update.kl_full_precision)
