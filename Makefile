@@ -32,6 +32,7 @@ test-fast: install
 bench:
 	$(PYTHON) -m benchmarks.run
 	$(PYTHON) -m benchmarks.population
+	$(PYTHON) -m benchmarks.precision
 
 lint:
 	$(PYTHON) -m ruff check hmepol_cli tests benchmarks

@@ -39,11 +39,15 @@ def matmul_flops(size: int = 2048, min_seconds: float = 0.5) -> float:
     return 2 * size**3 / _fastest(lambda: torch.matmul(a, b), min_seconds)
 
 
-def layer_matmul_flops(rows: int, width: int = 300, min_seconds: float = 0.5) -> float:
-    """float32 FLOP/s of the three matmuls of a hidden (width x width) Linear layer over ``rows``
-    particles, the shapes an off-policy iteration multiplies: forward x W^T, backward g W and
-    g^T x."""
-    x, g, w = torch.randn(rows, width), torch.randn(rows, width), torch.randn(width, width)
+def layer_matmul_flops(
+    rows: int, width: int = 300, min_seconds: float = 0.5, dtype: torch.dtype = torch.float32
+) -> float:
+    """FLOP/s (in ``dtype``) of the three matmuls of a hidden (width x width) Linear layer over
+    ``rows`` particles, the shapes an off-policy iteration multiplies: forward x W^T, backward
+    g W and g^T x."""
+    x, g, w = (
+        torch.randn(*shape).to(dtype) for shape in ((rows, width), (rows, width), (width, width))
+    )
 
     def layer() -> None:
         torch.matmul(x, w.T)

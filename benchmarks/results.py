@@ -38,6 +38,11 @@ class Row:
     # Matmul throughput measured just before and just after the epoch (the faster of the two):
     layer_matmul_flops: float = 0.0  # at the hidden layer's shapes over all particles
     square_matmul_flops: float = 0.0  # 2048 x 2048 by 2048 x 2048
+    # The same epoch with precision=bf16 (its own trainer, same seed), measured right after:
+    bf16_epoch_s: float = 0.0
+    bf16_update_s: float = 0.0
+    bf16_off_iters: int = 0
+    bf16_layer_matmul_flops: float = 0.0  # the layer's matmuls in bfloat16
 
     @property
     def label(self) -> str:
@@ -70,6 +75,19 @@ class Row:
         return self.iteration_flops_per_s / self.square_matmul_flops
 
     @property
+    def bf16_ratio(self) -> float:
+        """How many times faster the bf16 epoch is than the float32 one."""
+        return self.epoch_s / self.bf16_epoch_s if self.bf16_epoch_s else float("nan")
+
+    @property
+    def bf16_matmul_fraction(self) -> float:
+        """The bf16 iteration's FLOP rate, of the bf16 layer-matmul rate."""
+        if not self.bf16_update_s:
+            return float("nan")
+        rate = self.iteration_flops / (self.bf16_update_s / max(self.bf16_off_iters, 1))
+        return rate / self.bf16_layer_matmul_flops
+
+    @property
     def plain_epoch_s(self) -> float:
         """The same epoch with the plain loop's collection and the brute-force search."""
         return self.particles / self.plain_steps_per_s + self.brute_force_s + self.update_s
@@ -82,6 +100,8 @@ class Row:
             "matmul_fraction",
             "square_fraction",
             "plain_epoch_s",
+            "bf16_ratio",
+            "bf16_matmul_fraction",
         )
         return {name: getattr(self, name) for name in names}
 
@@ -204,6 +224,30 @@ def markdown(rows: list[Row], check: dict, meta: dict) -> str:
             for r in rows
         ],
     )
+    precision = _table(
+        [
+            "setting",
+            "float32 epoch s",
+            "bf16 epoch s",
+            "bf16 / float32 speed",
+            "float32: of its layer matmul rate",
+            "bf16: of its layer matmul rate",
+            "layer matmul GFLOP/s float32, bf16",
+        ],
+        [
+            [
+                r.label,
+                f"{r.epoch_s:.1f}",
+                f"{r.bf16_epoch_s:.1f}",
+                f"{r.bf16_ratio:.2f}x",
+                f"{r.matmul_fraction:.0%}",
+                f"{r.bf16_matmul_fraction:.0%}",
+                f"{r.layer_matmul_flops / 1e9:.0f}, {r.bf16_layer_matmul_flops / 1e9:.0f}",
+            ]
+            for r in rows
+            if r.bf16_epoch_s
+        ],
+    )
     goals = _table(
         ["target", "measured", "met"],
         [[t, m, "yes" if ok else "no"] for t, m, ok in meta["targets"]],
@@ -240,6 +284,12 @@ kl_threshold=1e9). Plain epoch: the plain loop's collection and the brute-force 
 the same off-policy iterations:
 
 {epoch}
+
+**Precision** (the same epoch, {first.off_iters} iterations, with `precision=bf16`: the hidden \
+layers' products in bfloat16, the action mean and the likelihoods in float32; measured right \
+after the float32 one, on the same machine; `python -m benchmarks.precision` validates it):
+
+{precision}
 
 **float32 vs float64** ({check["setting"]}; one float64 rollout shared by both): the kNN \
 entropies of the same particles differ by at most {check["entropy_max_abs_diff"]:.1e} nats. The \
