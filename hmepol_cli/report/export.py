@@ -3,9 +3,10 @@
     python -m hmepol_cli.report.export outputs/full docs/results/full
 
 For every run directory under SOURCE (a directory with run.json): config.yaml, run.json,
-epochs.csv and finetune.csv as they are, targets.json, and eval/final.npz with its positions
-stored as float16 (a heatmap bin is 0.04 wide: float16's 1e-3 resolution on [-6, 6] changes no
-figure, and halves the file). Checkpoints, batches.csv and pictures are left out. ``hmepol
+epochs.csv and finetune.csv as they are, targets.json, steps.csv (diagnostics) gzipped as
+steps.csv.gz, and eval/final.npz with its positions stored as float16 (a heatmap bin is 0.04
+wide: float16's 1e-3 resolution on [-6, 6] changes no figure, and halves the file).
+Checkpoints, batches.csv and pictures are left out. ``hmepol
 report DEST`` then rebuilds every figure and table from these files alone. Unfinished runs are
 copied too (a later export brings them up to date); the report lists them as skipped.
 """
@@ -13,6 +14,7 @@ copied too (a later export brings them up to date); the report lists them as ski
 from __future__ import annotations
 
 import argparse
+import gzip
 import io
 import shutil
 from pathlib import Path
@@ -26,6 +28,7 @@ from hmepol_cli.rundir import (
     FINAL_EVAL,
     FINETUNE_CSV,
     RUN_INFO,
+    STEPS_CSV,
     TARGETS_JSON,
     atomic_write_bytes,
     load_positions,
@@ -44,6 +47,9 @@ def export_runs(source: Path, dest: Path) -> list[Path]:
         for name in KEPT:
             if (run_dir / name).is_file():
                 shutil.copyfile(run_dir / name, target / name)
+        if (run_dir / STEPS_CSV).is_file():
+            data = gzip.compress((run_dir / STEPS_CSV).read_bytes(), mtime=0)
+            atomic_write_bytes(target / f"{STEPS_CSV}.gz", data)
         final = run_dir / EVAL_DIR / f"{FINAL_EVAL}.npz"
         if final.is_file():
             positions = {
