@@ -231,11 +231,14 @@ def _set_threads(cfg: DictConfig) -> None:
 
 
 def _train(cfg: DictConfig) -> list[str]:
-    """One run, or a population (``seeds=[...]``): members that differ only in their seed."""
-    if cfg.seeds:
+    """One run, or a population (``seeds=[...]``, or ``members=[...]`` from the population
+    launcher): members that differ only in member-scalar keys (hmepol_cli/members.py)."""
+    if cfg.seeds or cfg.members:
         if cfg.resume is not None:
             raise ConfigError("resume= continues one run; give it a member's run directory")
         members = _population_members(cfg)
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            _remove_if_empty(Path(HydraConfig.get().runtime.output_dir))  # the job's own folder
     elif cfg.resume is not None:
         run_dir = Path(cfg.resume)
         members = [(resumed_config(cfg, run_dir, list(HydraConfig.get().overrides.task)), run_dir)]
@@ -245,32 +248,59 @@ def _train(cfg: DictConfig) -> list[str]:
 
 
 def _population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
-    """Each seed's config, and the run directory the same job with ``seed=<s>`` instead of
-    ``seeds=[...]`` would have had: a population leaves ordinary runs where a sweep over seed
-    would. (A single ``hmepol train seeds=[...]`` puts them in ``<run dir>/seed<s>``.)"""
-    seeds = [int(s) for s in cfg.seeds]
-    if len(set(seeds)) != len(seeds):
-        raise ConfigError(f"seeds={seeds} holds a seed twice")
+    """Each member's config, and the run directory the same job with the member's own
+    overrides instead of ``seeds=[...]`` / ``members=[...]`` would have had: a population
+    leaves ordinary runs where the ungrouped sweep would. (A single ``hmepol train
+    seeds=[...]`` puts them in ``<run dir>/seed<s>``.)
+
+    ``members``: one string per member, its own overrides separated by spaces
+    (``"seed=0 wind=0.05"``), composed with the job's others."""
+    from hydra import compose as hydra_compose
+
     hc = HydraConfig.get()
+    common = [o for o in hc.overrides.task if _key(o) not in ("seeds", "members")]
+    if cfg.seeds:
+        seeds = [int(s) for s in cfg.seeds]
+        if len(set(seeds)) != len(seeds):
+            raise ConfigError(f"seeds={seeds} holds a seed twice")
+        own = [[f"seed={s}"] for s in seeds]
+    else:
+        own = [str(m).split() for m in cfg.members]
     members = []
-    for seed in seeds:
-        member = cfg.copy()
-        with open_dict(member):
-            member.seed, member.seeds = seed, None
-        if hc.mode == RunMode.MULTIRUN:
-            run_dir = Path(str(hc.sweep.dir)) / _member_subdir(hc, seed)
+    for i, overrides in enumerate(own):
+        if cfg.seeds:
+            member = cfg.copy()
+            with open_dict(member):
+                member.seed, member.seeds = int(overrides[0].partition("=")[2]), None
         else:
-            run_dir = Path(hc.runtime.output_dir) / f"seed{seed}"
+            member = hydra_compose(config_name="config", overrides=[*common, *overrides])
+        if hc.mode == RunMode.MULTIRUN:
+            run_dir = Path(str(hc.sweep.dir)) / _member_subdir(hc, [*common, *overrides])
+        elif cfg.seeds:
+            run_dir = Path(hc.runtime.output_dir) / f"seed{member.seed}"
+        else:
+            run_dir = Path(hc.runtime.output_dir) / f"member{i}"
         members.append((member, run_dir))
     return members
 
 
-def _member_subdir(hc: DictConfig, seed: int) -> str:
-    """hydra.sweep.subdir of this job with ``seeds=[...]`` replaced by ``seed=<seed>``."""
-    lines = [o for o in hc.overrides.task if o.lstrip("+~").partition("=")[0] != "seeds"]
+def _remove_if_empty(folder: Path) -> None:
+    """Hydra makes a folder for every job; a population's job writes into its members'."""
+    try:
+        folder.rmdir()
+    except OSError:  # not empty, or not there
+        pass
+
+
+def _key(override: str) -> str:
+    return override.lstrip("+~").partition("=")[0]
+
+
+def _member_subdir(hc: DictConfig, overrides: list[str]) -> str:
+    """hydra.sweep.subdir of the job with these overrides (a population member's own job)."""
     naming = hc.job.config.override_dirname
     dirname = sweeps.override_dirname(
-        [*lines, f"seed={seed}"], list(naming.exclude_keys), naming.item_sep, naming.kv_sep
+        overrides, list(naming.exclude_keys), naming.item_sep, naming.kv_sep
     )
     job = OmegaConf.create({"hydra": OmegaConf.to_container(hc, resolve=False)})
     job.hydra.job.override_dirname = dirname

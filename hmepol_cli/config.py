@@ -130,6 +130,9 @@ class Config:
     seed: int = 0
     # A population: runs that differ only in their seed, trained together (one per seed).
     seeds: list[int] | None = None
+    # A population of members with their own member-scalar overrides, one string each
+    # ("seed=0 wind=0.05"); what hydra/launcher=population writes.
+    members: list[str] | None = None
     device: str = "cpu"  # cpu | cuda | auto
     # float32 | float64 | bf16 (the hidden layers' products in bfloat16, CPU or GPU) | tf32
     # (TF32 products, GPU only); hmepol_cli/precision.py says where each applies

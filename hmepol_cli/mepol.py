@@ -52,17 +52,14 @@ from hmepol_cli.rollout import Rollout, collect, draw_configurations
 
 @dataclass(frozen=True)
 class OffPolicySettings:
-    """What one epoch of Algorithm 3.1 needs from the config, read once."""
+    """What one epoch of Algorithm 3.1 needs from the config, read once. ``members`` holds what
+    each member of a population may have of its own (:mod:`hmepol_cli.members`)."""
 
     trajectories: int  # N
     horizon: int  # T
     batch_size: int  # B, trajectories per mini-batch
     estimator: estimators.KNNEstimator  # entropy, IW entropy and KL (eqs. 2.6-2.8)
-    objective: str  # mean | cvar
-    alpha: float  # CVaR level (eq. 3.3)
-    kl_threshold: float  # delta
-    lr: float
-    max_off_iters: int
+    members: tuple[MemberSettings, ...]  # per member of the population
     backtracking: str  # reference | first_step
     backtrack_tries: int
     backtrack_factor: float
@@ -73,7 +70,11 @@ class OffPolicySettings:
     precision: Precision = PRECISIONS["float32"]  # how the likelihoods' products are computed
 
     @classmethod
-    def from_config(cls, cfg: DictConfig, history_size: int) -> OffPolicySettings:
+    def from_config(
+        cls, cfg: DictConfig, history_size: int, member_cfgs: Sequence[DictConfig] = ()
+    ) -> OffPolicySettings:
+        """The settings of ``cfg``; ``member_cfgs`` (default: [cfg]) the population's members,
+        which differ only in member-scalar keys."""
         a = cfg.algo
         # Runs started before the reference's backtracking was the default keep their own rule.
         return cls(
@@ -81,11 +82,7 @@ class OffPolicySettings:
             horizon=int(a.horizon),
             batch_size=int(a.batch_size),
             estimator=estimators.make_estimator(cfg.estimator),
-            objective=str(a.objective),
-            alpha=float(a.alpha),
-            kl_threshold=float(a.kl_threshold),
-            lr=float(a.lr),
-            max_off_iters=int(a.max_off_iters),
+            members=tuple(MemberSettings.from_config(c) for c in (member_cfgs or [cfg])),
             backtracking=str(a.get("backtracking", "first_step")),
             backtrack_tries=int(a.lr_backtrack_tries),
             backtrack_factor=float(a.lr_backtrack_factor),
@@ -95,6 +92,40 @@ class OffPolicySettings:
             diagnostics=bool(cfg.get("diagnostics", False)),
             precision=precision_of(cfg),
         )
+
+
+@dataclass(frozen=True)
+class MemberSettings:
+    """The hyperparameters one member of a population has of its own."""
+
+    lr: float
+    kl_threshold: float  # delta
+    max_off_iters: int
+    objective: str = "mean"  # mean | cvar
+    alpha: float = 1.0  # CVaR level (eq. 3.3)
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> MemberSettings:
+        a = cfg.algo
+        return cls(
+            lr=float(a.lr),
+            kl_threshold=float(a.kl_threshold),
+            max_off_iters=int(a.max_off_iters),
+            objective=str(a.objective),
+            alpha=float(a.alpha),
+        )
+
+
+def member_objectives(
+    entropies: torch.Tensor, members: Sequence[int], settings: OffPolicySettings
+) -> torch.Tensor:
+    """Each row's objective over its mini-batch entropies, with its member's own objective and
+    alpha. entropies (R, M), members (R,) population indices -> (R,)"""
+    rows = []
+    for i, m in enumerate(members):
+        hyper = settings.members[m]
+        rows.append(objective(entropies[i : i + 1], hyper.objective, hyper.alpha)[0])
+    return torch.stack(rows)
 
 
 @dataclass
@@ -216,7 +247,7 @@ def _update(
             _amax_per_member(rollout.histories).double(),
             _amax_per_member(rollout.actions).double(),
             floor.mean(-1).double(),
-            objective(entropies, s.objective, s.alpha).double(),
+            member_objectives(entropies, members.tolist(), s).double(),
             rollout.log_std.double().mean(-1),
             clipped.double().mean(-1),
         ]
@@ -315,7 +346,7 @@ class Surrogate:
         return Estimate(
             entropies=entropies,
             kl=exact if s.exact_kl and exact is not None else one_step,
-            objective=objective(entropies, s.objective, s.alpha),
+            objective=member_objectives(entropies, who.tolist(), s),
             likelihoods=target.detach(),
             kl_one_step=one_step,
             kl_exact=exact,
@@ -384,17 +415,23 @@ def off_policy_loop(
     accepted_exact = [0.0 if start.kl_exact is not None else math.nan] * len(members)
     keep_adam = s.restore == "parameters_and_adam"
     last_accepted = Snapshot(population, optimizer, grads, with_optimizer=keep_adam)
-    lr = torch.full((size,), s.lr, dtype=torch.float64, device=device)
+    hyper = s.members  # population member -> its own lr, delta, iterations, objective
+    lr = torch.tensor([h.lr for h in hyper], dtype=torch.float64, device=device)
+    threshold = torch.tensor([h.kl_threshold for h in hyper], dtype=torch.float64, device=device)
     off_iters, backtracks = [0] * size, [0] * size
     records: dict[int, list[StepRecord]] = {int(m): [] for m in members.tolist()}
     searching = torch.zeros(size, dtype=torch.bool, device=device)  # members still stepping
-    searching[members] = s.max_off_iters > 0
+    searching[members] = torch.tensor([hyper[m].max_off_iters > 0 for m in members.tolist()],
+                                      device=device)  # fmt: skip
     while bool(searching.any()):
         optimizer.step(grads, lr, searching)  # theta' <- theta' + Adam step
         stepped = searching.nonzero()[:, 0].tolist()
         estimate = surrogate(surrogate.rows(stepped))
         grads = _merge(grads, _gradients(estimate.objective, params), _mask(stepped, size, device))
-        in_region = (estimate.kl <= s.kl_threshold) & torch.isfinite(estimate.objective)
+        limit = threshold.index_select(0, torch.tensor(stepped, device=device)).to(
+            estimate.kl.dtype
+        )
+        in_region = (estimate.kl <= limit) & torch.isfinite(estimate.objective)
         # One host sync per iteration: on a GPU the loop waits for the device only here.
         numbers = [in_region.to(estimate.kl.dtype), estimate.kl.detach()]
         if s.diagnostics:
@@ -423,7 +460,7 @@ def off_policy_loop(
                 if s.diagnostics:
                     accepted_exact[surrogate.row_of[m]] = host[3][i]
                 accepted_now.append(i)
-                done = off_iters[m] >= s.max_off_iters
+                done = off_iters[m] >= hyper[m].max_off_iters
                 if s.backtracking == "reference":
                     done |= backtracks[m] > 0  # at most one step after backtracking
                 searching[m] = not done
@@ -433,7 +470,7 @@ def off_policy_loop(
                 retry = backtracks[m] < s.backtrack_tries - 1
                 if retry:
                     backtracks[m] += 1
-                    lr[m] = s.lr / s.backtrack_factor ** backtracks[m]
+                    lr[m] = hyper[m].lr / s.backtrack_factor ** backtracks[m]
             else:  # first_step: only a rejected first step is retried, at a reduced rate
                 retry = off_iters[m] == 0 and backtracks[m] < s.backtrack_tries
                 if retry:

@@ -137,7 +137,7 @@ def collect(
     """
     s, n = configurations.shape
     with torch.inference_mode():
-        episodes, action_noise = world.begin(configurations, horizon, generators)
+        episodes, action_noise = world.begin(configurations, horizon, generators, members)
     log_std = population.params["log_std"].detach().clone()
     log_std = log_std if members is None else log_std.index_select(0, members)
     records = world.episodes_end or ends_episode is not None

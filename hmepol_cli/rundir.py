@@ -85,6 +85,7 @@ RESUMABLE_KEYS = (
     "resume",
     "skip_finished",
     "seeds",
+    "members",
     "env.workers",  # a Gymnasium world's processes: the same episodes with any count
     "diagnostics",  # what is recorded, not what is computed
     "checkpoint",

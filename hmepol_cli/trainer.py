@@ -29,6 +29,7 @@ from hmepol_cli import mepol
 from hmepol_cli.envs import make_world
 from hmepol_cli.errors import RunDirError
 from hmepol_cli.evaluation import evaluate_and_save
+from hmepol_cli.members import check_members
 from hmepol_cli.mepol import EpochStats, OffPolicySettings
 from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
@@ -70,7 +71,8 @@ class Member:
 
 
 class Trainer:
-    """Trains a population of runs that differ only in their seed; owns their run directories."""
+    """Trains a population of runs that differ only in member-scalar keys (the seed, the wind,
+    the learning rate, ...: :mod:`hmepol_cli.members`); owns their run directories."""
 
     def __init__(
         self,
@@ -81,14 +83,16 @@ class Trainer:
         run_dirs = [run_dirs] if isinstance(run_dirs, str | Path) else list(run_dirs)
         if len(cfgs) != len(run_dirs) or not cfgs:
             raise ValueError("one run directory per member config, and at least one member")
-        self.cfg = cfg = cfgs[0]  # what the members share: everything but the seed
+        check_members(cfgs)  # they may differ only in member-scalar keys (hmepol_cli/members.py)
+        self.cfg = cfg = cfgs[0]  # what the members share: the program
         self.device = get_device(cfg.device)
         precision = precision_of(cfg)
         self.dtype = precision.dtype
         if self.device.type == "cuda":
             torch.set_float32_matmul_precision(precision.matmul)
         keep_freed_memory()
-        self.world = make_world(cfg.env).to(self.device, self.dtype)
+        self.world = make_world(cfg.env).for_members([c.env for c in cfgs])
+        self.world = self.world.to(self.device, self.dtype)
         policies = []
         for member_cfg in cfgs:
             set_random_seed(member_cfg.seed)  # each member's initial weights, as its own run
@@ -100,7 +104,7 @@ class Trainer:
             Member(c, Path(d), make_generator(self.device, c.seed), RunDirectory(Path(d), c))
             for c, d in zip(cfgs, run_dirs, strict=True)
         ]
-        self.settings = OffPolicySettings.from_config(cfg, self.population.history_size)
+        self.settings = OffPolicySettings.from_config(cfg, self.population.history_size, cfgs)
         # Captured rollouts (CUDA graphs), one per shape: on a GPU the step loop's ~100 small
         # kernels a step cost more in launches than in work.
         self.graphs: dict | None = {} if cfg.cuda_graphs and self.device.type == "cuda" else None
@@ -156,14 +160,14 @@ class Trainer:
     def record_world(self) -> None:
         """Each member's tables, and what its run.json says about the world and the run."""
         free = [self.world.free_area(c) for c in range(self.world.n_configurations)]
-        for member in self.members:
+        for s, member in enumerate(self.members):
             member.log = training_tables(member.run_dir)
             member.directory.update(
                 env=self.cfg.env.name,
-                algo=self.cfg.algo.name,
+                algo=member.cfg.algo.name,
                 policy=self.cfg.policy.name,
                 seed=int(member.cfg.seed),
-                **{"wind": None, "env_id": None, **self.world.facts()},
+                **{"wind": None, "env_id": None, **self.world.facts(s)},
                 epochs=int(self.cfg.epochs),
                 epochs_done=int(member.directory.info().get("epochs_done", 0)),
                 config_names=list(self.world.configuration_names),

@@ -82,6 +82,7 @@ class CueCorridorWorld(NavigationWorld):
         generator: torch.Generator | None = None,
         *,
         noise: torch.Tensor | None = None,
+        strength: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """As the base world in the corridor; from a pad, to the origin whatever the action."""
         moved = super().step(positions, actions, configurations, generator, noise=noise)

@@ -9,18 +9,21 @@ import pytest
 import torch
 
 from hmepol_cli.estimators import KNNEstimator
-from hmepol_cli.mepol import Estimate, OffPolicySettings, off_policy_loop
+from hmepol_cli.mepol import Estimate, MemberSettings, OffPolicySettings, off_policy_loop
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 
 LR = 0.1
 
 
-def settings(**changes) -> OffPolicySettings:
+def settings(size: int = 1, **changes) -> OffPolicySettings:
+    """The loop's settings; the member-scalar ones (lr, kl_threshold, max_off_iters) for each of
+    ``size`` members."""
+    own = {k: changes.pop(k) for k in ("lr", "kl_threshold", "max_off_iters") if k in changes}
+    member = MemberSettings(**{"lr": LR, "kl_threshold": 0.15, "max_off_iters": 30, **own})
     base = OffPolicySettings(
         trajectories=10, horizon=4, batch_size=5, estimator=KNNEstimator(2),
-        objective="mean", alpha=1.0, kl_threshold=0.15, lr=LR, max_off_iters=30,
-        backtracking="reference", backtrack_tries=10, backtrack_factor=2.0,
-        restore="parameters", exact_kl=False, bptt=1,
+        members=(member,) * size, backtracking="reference", backtrack_tries=10,
+        backtrack_factor=2.0, restore="parameters", exact_kl=False, bptt=1,
     )  # fmt: skip
     return dataclasses.replace(base, **changes)
 
@@ -42,6 +45,9 @@ class Quadratic:
 
     def rows(self, members):
         return torch.tensor(list(members))
+
+    def full_precision(self):
+        return None  # no lowered precision to check
 
     def __call__(self, rows: torch.Tensor):
         self.calls += 1
@@ -141,7 +147,7 @@ def test_members_backtrack_and_stop_each_on_their_own():
     member that stopped does not move while the others go on."""
     pop, adam = population(3)
     surrogate = Quadratic(pop, scale=torch.tensor([1.0, 4.0, 1e-6], dtype=torch.float64))
-    s = settings(kl_threshold=0.15, max_off_iters=10)
+    s = settings(3, kl_threshold=0.15, max_off_iters=10)
     results = off_policy_loop(pop, adam, surrogate, torch.tensor([0, 1, 2]), s)
     # Member 0 as above; member 1 (KL 8 lr^2 j^2): 0.08 after one step, 0.32 after two: the
     # retry at lr / 2 (KL 0.18) is rejected, at lr / 4 (0.125) accepted; member 2 never leaves.
@@ -152,5 +158,5 @@ def test_members_backtrack_and_stop_each_on_their_own():
     for m, single in enumerate(results):
         pop1, adam1 = population()
         alone = Quadratic(pop1, scale=surrogate.scale[m : m + 1])
-        (r,) = off_policy_loop(pop1, adam1, alone, torch.tensor([0]), s)
+        (r,) = off_policy_loop(pop1, adam1, alone, torch.tensor([0]), settings(1, max_off_iters=10))
         assert (r.off_iters, r.backtracks, r.lr) == (single.off_iters, single.backtracks, single.lr)

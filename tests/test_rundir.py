@@ -154,7 +154,7 @@ def test_a_member_whose_numbers_stop_being_finite_fails_alone_and_says_what(tmp_
     real_step = world.step
     steps_per_epoch = trainer.cfg.algo.horizon
 
-    def poisoned(positions, actions, configurations, generator=None, *, noise=None):
+    def poisoned(positions, actions, configurations, generator=None, *, noise=None, strength=None):
         moved = real_step(positions, actions, configurations, generator, noise=noise)
         calls["n"] += 1
         both = moved.shape[0] == 2 * trainer.cfg.algo.trajectories  # members 0 and 1 stepping

@@ -90,30 +90,34 @@ def test_a_failed_job_does_not_stop_the_others_and_the_sweep_says_so(tmp_path):
     assert len(pd.read_csv(seed0 / "epochs.csv")) == 1 and not (seed0 / ".lock").exists()
 
 
-def test_group_by_seed_makes_one_job_per_population():
-    from hydra_plugins.hmepol_population_launcher.population_launcher import group_by_seed
+def test_jobs_whose_programs_are_equal_become_one_population():
+    """The grouping on a stand-in for the composed program: algo=mepol and algo=hmepol differ
+    in the policy (two programs), seeds and winds do not."""
+    from hydra_plugins.hmepol_population_launcher.population_launcher import group_jobs
+
+    def program(overrides):
+        return {"policy": "recursive" if "algo=hmepol" in overrides else "markov"}
 
     jobs = [
         ["algo=mepol", "seed=0"],
         ["algo=hmepol", "seed=0"],
         ["algo=mepol", "seed=1"],
         ["algo=hmepol", "seed=1"],
-        ["algo=mepol", "seed=2"],
-        ["wind=0.4"],
-        ["wind=0.05"],
+        ["algo=mepol", "seed=2", "wind=0.05"],
     ]
-    assert group_by_seed(jobs) == [
-        ["algo=mepol", "seeds=[0,1,2]"],
-        ["algo=hmepol", "seeds=[0,1]"],
-        ["wind=0.4"],
-        ["wind=0.05"],
+    grouped, summary = group_jobs(jobs, program)
+    assert grouped == [
+        ["algo=mepol", 'members=["seed=0","seed=1","seed=2 wind=0.05"]'],
+        ["algo=hmepol", 'members=["seed=0","seed=1"]'],
     ]
-    assert group_by_seed(jobs, max_members=2) == [
-        ["algo=mepol", "seeds=[0,1]"],
-        ["algo=mepol", "seed=2"],
-        ["algo=hmepol", "seeds=[0,1]"],
-        ["wind=0.4"],
-        ["wind=0.05"],
+    assert summary == (
+        "5 runs as 2 jobs (populations of 3, 2 members); not one population: they differ in policy"
+    )
+    grouped, _ = group_jobs(jobs, program, max_members=2)
+    assert grouped == [
+        ["algo=mepol", 'members=["seed=0","seed=1"]'],
+        ["algo=mepol", "seed=2", "wind=0.05"],
+        ["algo=hmepol", 'members=["seed=0","seed=1"]'],
     ]
 
 
@@ -125,7 +129,7 @@ def test_a_population_sweep_leaves_the_runs_a_sweep_over_seeds_would(tmp_path):
         (tmp_path / folder).mkdir()
     grouped = sweep(tmp_path / "population", "seed=0,1,2", "hydra/launcher=population")
     assert grouped.returncode == 0, grouped.stderr[-3000:]
-    assert "3 runs as 1 jobs" in grouped.stdout + grouped.stderr
+    assert "3 runs as 1 job (populations of 3 members)" in grouped.stdout
     plain = sweep(tmp_path / "plain", "seed=0,1,2", "hydra/launcher=basic")
     assert plain.returncode == 0, plain.stderr[-3000:]
     members, separate = runs(tmp_path / "population" / "sweep"), runs(tmp_path / "plain" / "sweep")
@@ -150,12 +154,48 @@ def test_a_population_sweep_leaves_the_runs_a_sweep_over_seeds_would(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_sweep_over_winds_and_seeds_runs_as_one_population_of_four(tmp_path):
+    """Issue 23: hmepol sweep env=corridor algo=mepol wind=0.05,0.4 seed=0,1 with the
+    population launcher is one job of four members, each with its wind in its config and
+    run.json, in the run directories the ungrouped sweep writes, and the report reads them."""
+    args = ("env=corridor", "algo=mepol", "wind=0.05,0.4", "seed=0,1", "algo.batch_size=1",
+            "algo.trajectories=4")  # fmt: skip
+    for folder in ("population", "plain"):
+        (tmp_path / folder).mkdir()
+    grouped = sweep(tmp_path / "population", *args, "hydra/launcher=population")
+    assert grouped.returncode == 0, grouped.stderr[-3000:]
+    assert "4 runs as 1 job (populations of 4 members)" in grouped.stdout
+    plain = sweep(tmp_path / "plain", *args, "hydra/launcher=basic")
+    assert plain.returncode == 0, plain.stderr[-3000:]
+    members, separate = runs(tmp_path / "population" / "sweep"), runs(tmp_path / "plain" / "sweep")
+    assert sorted(d.name for d in members) == sorted(d.name for d in separate)
+    for run_dir, cfg in members.items():
+        info = json.loads((run_dir / "run.json").read_text())
+        assert info["wind"] == cfg.wind == cfg.env.wind and info["seed"] == cfg.seed
+    assert sorted((c.wind, c.seed) for c in members.values()) == [
+        (0.05, 0), (0.05, 1), (0.4, 0), (0.4, 1)
+    ]  # fmt: skip
+    drop = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time"]
+    for run_dir in separate:
+        a = pd.read_csv(tmp_path / "population" / "sweep" / run_dir.name / "epochs.csv")
+        b = pd.read_csv(run_dir / "epochs.csv")
+        pd.testing.assert_frame_equal(a.drop(columns=drop), b.drop(columns=drop), rtol=1e-4)
+    report = subprocess.run(
+        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "population" / "sweep")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert report.returncode == 0 and "4 runs used" in report.stdout, report.stderr[-2000:]
+
+
+@pytest.mark.slow
 def test_a_population_runs_as_one_submitit_job(tmp_path):
     """population_local wraps submitit's local executor the way population_slurm wraps SLURM:
     one submitted job trains the seeds together and leaves their run directories."""
     proc = sweep(tmp_path, "seed=0,1", "hydra/launcher=population_local")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "2 runs as 1 jobs" in proc.stdout + proc.stderr
+    assert "2 runs as 1 job (populations of 2 members)" in proc.stdout + proc.stderr
     found = runs(tmp_path / "sweep")
     assert sorted(cfg.seed for cfg in found.values()) == [0, 1]
     for run_dir in found:

@@ -319,3 +319,61 @@ def test_fine_tuning_starts_from_a_kept_checkpoint_and_records_its_epoch(tmp_pat
     rows = pd.read_csv(out / "finetune.csv")
     assert (rows.init_epoch == 1).all() and rows.init.str.endswith("@1").all()
     assert json.loads((out / "run.json").read_text())["init_epoch"] == 1
+
+
+# ------------------------------------------------------------------ members of their own
+def compare_members_with_their_runs(tmp_path, member_overrides, epochs: int = 2, rtol=1e-5):
+    """One population of members with their own overrides against a run of each alone: the
+    same epochs, to float tolerance (a CPU rollout steps the members together in one batched
+    call, whose products round differently from a run's own)."""
+    cfgs = [compose_cfg(*o) for o in member_overrides]
+    together = Trainer(cfgs, [tmp_path / f"member{i}" for i in range(len(cfgs))])
+    runs = [Trainer(c, tmp_path / f"alone{i}") for i, c in enumerate(cfgs)]
+    for _ in range(epochs):
+        members = together.epoch()
+        for mine, run in zip(members, runs, strict=True):
+            (alone,) = run.epoch()
+            np.testing.assert_allclose(mine.entropies, alone.entropies, rtol=rtol)
+            np.testing.assert_array_equal(mine.batch_configurations, alone.batch_configurations)
+            np.testing.assert_allclose(mine.objective, alone.objective, rtol=rtol)
+            np.testing.assert_allclose(mine.update.kl, alone.update.kl, rtol=1e-3, atol=1e-7)
+            assert (mine.update.off_iters, mine.update.backtracks) == (
+                alone.update.off_iters,
+                alone.update.backtracks,
+            )
+    return together
+
+
+def test_members_with_their_own_winds_and_seeds_train_as_their_own_runs(tmp_path):
+    members = [
+        ("env=corridor", "algo=hmepol", f"wind={w}", f"seed={s}", "algo.trajectories=4",
+         "algo.batch_size=1")
+        for w in (0.05, 0.4)
+        for s in (0, 1)
+    ]  # fmt: skip
+    together = compare_members_with_their_runs(tmp_path, members)
+    assert [together.world.facts(s)["wind"] for s in range(4)] == [0.05, 0.05, 0.4, 0.4]
+
+
+def test_mepol_and_alpha_mepol_are_members_of_one_population(tmp_path):
+    members = [(f"algo={a}", "algo.alpha=0.35" if a == "alphamepol" else "algo.alpha=1.0",
+                f"seed={s}") for a in ("mepol", "alphamepol") for s in (0, 1)]  # fmt: skip
+    together = compare_members_with_their_runs(tmp_path, members)
+    objectives = [m.objective for m in together.settings.members]
+    assert objectives == ["mean", "mean", "cvar", "cvar"]
+
+
+def test_members_with_their_own_learning_rates_and_trust_regions(tmp_path):
+    members = [(f"algo.lr={lr}", f"algo.kl_threshold={kl}") for lr, kl in
+               ((1e-3, 0.5), (1e-2, 0.05), (3e-3, 0.2))]  # fmt: skip
+    compare_members_with_their_runs(tmp_path, members)
+
+
+def test_runs_that_differ_in_the_program_cannot_share_a_population(tmp_path):
+    from hmepol_cli.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="policy.hidden"):
+        Trainer(
+            [compose_cfg("seed=0"), compose_cfg("seed=1", "policy.hidden=[8]")],
+            [tmp_path / "a", tmp_path / "b"],
+        )

@@ -128,8 +128,9 @@ class NavigationWorld:
     def close(self) -> None:
         """Release what the world holds outside tensors (nothing, for these worlds)."""
 
-    def facts(self) -> dict[str, object]:
-        """What run.json records about the world beyond its configurations."""
+    def facts(self, member: int | None = None) -> dict[str, object]:
+        """What run.json records about the world (of a population's ``member``) beyond its
+        configurations."""
         return {"edge": self.edge}
 
     # ------------------------------------------------------------------ states
@@ -195,6 +196,8 @@ class NavigationWorld:
         self._start_fallback = torch.tensor(
             [self._free_start_point(c) for c in range(self.n_configurations)], **kw
         )
+        values = getattr(self, "_member_strength_values", None)
+        self._member_strength = None if values is None else torch.tensor(values, **kw)
 
     def _free_start_point(self, config: int) -> tuple[float, float]:
         """A free point of the start area, for the (astronomically rare) agent whose candidates
@@ -239,11 +242,16 @@ class NavigationWorld:
         )
 
     def begin(
-        self, configurations: torch.Tensor, horizon: int, generators: Sequence[torch.Generator]
+        self,
+        configurations: torch.Tensor,
+        horizon: int,
+        generators: Sequence[torch.Generator],
+        members: torch.Tensor | None = None,
     ) -> tuple[NavigationEpisodes, torch.Tensor]:
-        """S' x N episodes in ``configurations`` (S', N). Member i draws from generators[i], in
-        this order: its start positions, its action noise (N, T, a), its world noise (N, T, k)
-        (the push-back's and the force's uniforms of every step)."""
+        """S' x N episodes in ``configurations`` (S', N) for the population's ``members`` (S',)
+        (None: all). Member i draws from generators[i], in this order: its start positions,
+        its action noise (N, T, a), its world noise (N, T, k) (the push-back's and the force's
+        uniforms of every step)."""
         n = configurations.shape[1]
         starts, actions, noise = [], [], []
         for i, generator in enumerate(generators):
@@ -253,17 +261,43 @@ class NavigationWorld:
                 torch.rand(n, horizon, self.noise_size, device=self.device, dtype=self.dtype,
                            generator=generator)
             )  # fmt: skip
+        strength = None
+        if self._member_strength is not None:  # members with forces of their own (winds)
+            rows = self._member_strength if members is None else self._member_strength[members]
+            strength = rows.repeat_interleave(n)
         episodes = NavigationEpisodes(
-            self, torch.stack(starts), configurations.flatten(), torch.stack(noise).flatten(0, 1)
-        )
+            self, torch.stack(starts), configurations.flatten(), torch.stack(noise).flatten(0, 1),
+            strength,
+        )  # fmt: skip
         return episodes, torch.stack(actions)
 
+    def for_members(self, env_cfgs: Sequence) -> NavigationWorld:
+        """The world of a population whose members' ``env`` entries are ``env_cfgs``: they must
+        be the same world; a world with a force of its own per member (the corridor's wind)
+        overrides :meth:`member_strengths`."""
+        strengths = self.member_strengths(env_cfgs)
+        if strengths is not None and len(set(strengths)) > 1:
+            self._member_strength_values = tuple(float(v) for v in strengths)
+        else:
+            self._member_strength_values = None
+        self._build_tensors()
+        return self
+
+    def member_strengths(self, env_cfgs: Sequence) -> list[float] | None:
+        """Each member's force strength (None: the world's own, for every member)."""
+        return None
+
     def force(
-        self, positions: torch.Tensor, configurations: torch.Tensor, noise: torch.Tensor
+        self,
+        positions: torch.Tensor,
+        configurations: torch.Tensor,
+        noise: torch.Tensor,
+        strength: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """External displacement (slope, wind) at each position, added to the clipped action.
 
-        positions (N, 2), configurations (N,), noise (N, force_noise) uniform in [0, 1) -> (N, 2).
+        positions (N, 2), configurations (N,), noise (N, force_noise) uniform in [0, 1),
+        strength (N,) each agent's own strength of the force (None: the world's) -> (N, 2).
         """
         return torch.zeros_like(positions)
 
@@ -281,6 +315,7 @@ class NavigationWorld:
         generator: torch.Generator | None = None,
         *,
         noise: torch.Tensor | None = None,
+        strength: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Next positions: clipped action plus the configuration's force, off edges and walls.
 
@@ -289,9 +324,8 @@ class NavigationWorld:
         if noise is None:
             noise = self.draw_noise(positions.shape[0], generator)
         displacement = actions.clamp(-self.max_action, self.max_action)
-        displacement = displacement + self.force(
-            positions, configurations, noise[:, PUSH_BACK_NOISE:]
-        )
+        force = self.force(positions, configurations, noise[:, PUSH_BACK_NOISE:], strength)
+        displacement = displacement + force
         return self.move(positions, displacement, configurations, noise[:, :PUSH_BACK_NOISE])
 
     def move(
@@ -427,12 +461,14 @@ class NavigationEpisodes:
     start: torch.Tensor  # (S', N, 2): s_0
     configurations: torch.Tensor  # (S' N,)
     noise: torch.Tensor  # (S' N, T, k): the uniforms each step consumes
+    strength: torch.Tensor | None = None  # (S' N,): each agent's force (members' winds)
 
     def step(self, t: int, states: torch.Tensor, actions: torch.Tensor) -> Transition:
         s, n = states.shape[:2]
         moved = self.world.step(
-            states.flatten(0, 1), actions.flatten(0, 1), self.configurations, noise=self.noise[:, t]
-        )
+            states.flatten(0, 1), actions.flatten(0, 1), self.configurations,
+            noise=self.noise[:, t], strength=self.strength,
+        )  # fmt: skip
         return Transition(moved.view(s, n, -1))
 
 

@@ -121,8 +121,10 @@ class CorridorWorld(NavigationWorld):
     def describe(self, config: int) -> str:
         return f"wind {self.wind:g} in the corridor only" if self.wind > 0 else "no wind"
 
-    def facts(self) -> dict[str, object]:
-        return {**super().facts(), "wind": self.wind}
+    def facts(self, member: int | None = None) -> dict[str, object]:
+        values = getattr(self, "_member_strength_values", None)
+        wind = self.wind if member is None or values is None else values[member]
+        return {**super().facts(), "wind": wind}
 
     def arrow_candidates(self, config: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], float]:
         """An arrow every 0.75: one in every stub, four across the ring."""
@@ -165,6 +167,15 @@ class CorridorWorld(NavigationWorld):
         return torch.where(in_corridor, direction, torch.zeros_like(direction))
 
     def force(
-        self, positions: torch.Tensor, configurations: torch.Tensor, noise: torch.Tensor
+        self,
+        positions: torch.Tensor,
+        configurations: torch.Tensor,
+        noise: torch.Tensor,
+        strength: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        return self.wind * self.wind_direction(positions, configurations)
+        wind = self.wind if strength is None else strength[:, None]  # a population's winds
+        return wind * self.wind_direction(positions, configurations)
+
+    def member_strengths(self, env_cfgs) -> list[float]:
+        """Each member's wind."""
+        return [DEFAULT_WIND if c.get("wind") is None else float(c.wind) for c in env_cfgs]

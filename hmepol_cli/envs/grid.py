@@ -186,7 +186,11 @@ class GridWorld(NavigationWorld):
         return magnitude.clamp(torch.zeros_like(magnitude), self._slope_high[configurations])
 
     def force(
-        self, positions: torch.Tensor, configurations: torch.Tensor, noise: torch.Tensor
+        self,
+        positions: torch.Tensor,
+        configurations: torch.Tensor,
+        noise: torch.Tensor,
+        strength: torch.Tensor | None = None,
     ) -> torch.Tensor:
         magnitude = self.slope_magnitude(configurations, noise[:, 0])
         region = self._slope_region[configurations]

@@ -371,7 +371,11 @@ class GymWorld:
         )
 
     def begin(
-        self, configurations: torch.Tensor, horizon: int, generators: Sequence[torch.Generator]
+        self,
+        configurations: torch.Tensor,
+        horizon: int,
+        generators: Sequence[torch.Generator],
+        members: torch.Tensor | None = None,
     ) -> tuple[GymEpisodes, torch.Tensor]:
         """S' x N episodes on a pool of slots (one pool per size, kept between rollouts), each
         reset with its own seed; member i draws its N seeds, then its action noise."""
@@ -385,8 +389,12 @@ class GymWorld:
         episodes = GymEpisodes(self, self._pools[m], configurations, torch.stack(seeds))
         return episodes, torch.stack(noise)
 
-    def facts(self) -> dict[str, object]:
+    def facts(self, member: int | None = None) -> dict[str, object]:
         return {"env_id": self.env_id}
+
+    def for_members(self, env_cfgs) -> GymWorld:
+        """A population's members share one Gymnasium world (their env entries are equal)."""
+        return self
 
     def close(self) -> None:
         """Close the environments (and stop the worker processes); later rollouts reopen them."""

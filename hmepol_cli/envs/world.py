@@ -65,10 +65,20 @@ class World(Protocol):
         ...
 
     def begin(
-        self, configurations: torch.Tensor, horizon: int, generators: Sequence[torch.Generator]
+        self,
+        configurations: torch.Tensor,
+        horizon: int,
+        generators: Sequence[torch.Generator],
+        members: torch.Tensor | None = None,
     ) -> tuple[Episodes, torch.Tensor]:
-        """Start S' x N episodes in ``configurations`` (S', N), row i drawing from
-        ``generators[i]``. -> (the episodes, the actions' standard-normal noise (S', N, T, a))"""
+        """Start S' x N episodes in ``configurations`` (S', N), row i for population member
+        ``members[i]`` (None: row i is member i) drawing from ``generators[i]``.
+        -> (the episodes, the actions' standard-normal noise (S', N, T, a))"""
+        ...
+
+    def for_members(self, env_cfgs: Sequence) -> World:
+        """The world of a population whose members' ``env`` entries are ``env_cfgs`` (the same
+        world, with what each member may have of its own: the corridor's wind)."""
         ...
 
     def entropy_features(self, states: torch.Tensor) -> torch.Tensor:
@@ -89,8 +99,9 @@ class World(Protocol):
 
     def describe(self, config: int) -> str: ...
 
-    def facts(self) -> dict[str, object]:
-        """What run.json records about the world beyond its configurations (wind, id)."""
+    def facts(self, member: int | None = None) -> dict[str, object]:
+        """What run.json records about the world (of a population's ``member``) beyond its
+        configurations (edge, wind, id)."""
         ...
 
     def close(self) -> None: ...

@@ -51,6 +51,7 @@ RUN_SPECIFIC_KEYS = {
     "device",
     # A population (seeds=[...]) and how its members were batched on the device.
     "seeds",
+    "members",
     "vmap",
     "cuda_graphs",
     "matmul_precision",
