@@ -7,7 +7,7 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
 DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_fraction=0.25
 
-.PHONY: install demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce reproduce-corridor finetune-corridor clean
+.PHONY: install demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor clean
 
 install:
 	$(PYTHON) -m pip install --quiet "$(TORCH_SPEC)"
@@ -61,19 +61,27 @@ reproduce-quick-multigrid:
 results:
 	hmepol report docs/results --out docs/results
 
-# The thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid), as populations
-# on a GPU (DEVICE=cuda), or LAUNCHER=population_slurm for one SLURM job per population.
+# Chapter 5 at the thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid) as
+# populations over hyperparameters (hydra/launcher=population groups each sweep's runs by their
+# program): slope Markov (Mepol + alpha-Mepol, 16 members) and HMepol (8); corridor Markov
+# (Mepol + alpha-Mepol x 4 winds x 8 seeds, 64) and HMepol (4 winds x 8, 32); multigrid
+# alpha-Mepol (4) and HMepol (4): six programs. DEVICE=cuda on a GPU, or
+# LAUNCHER=population_slurm for one SLURM job per population; DRY=true prints the populations.
+# Expected on a 2-core CPU (from `make bench`'s seconds per epoch, 30 off-policy iterations an
+# epoch): ~26 days; the trust region stops many epochs early, so less (README, Reproducing).
 FULL_DIR ?= outputs/full
 DEVICE ?= cuda
 LAUNCHER ?= population
+DRY ?= false
 SEEDS8 = seed=0,1,2,3,4,5,6,7
-FULL = device=$(DEVICE) progress=false hydra/launcher=$(LAUNCHER)
-reproduce: reproduce-corridor finetune-corridor
-	hmepol sweep experiment=corridor_mepol,corridor_hmepol wind=0.05,0.15,0.25 $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/corridor
-	hmepol sweep experiment=corridor_alphamepol wind=0.05,0.15,0.25,0.4 $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/corridor
+FULL = device=$(DEVICE) progress=false hydra/launcher=$(LAUNCHER) hydra.launcher.dry_run=$(DRY)
+chapter5:
 	hmepol sweep experiment=slope_mepol,slope_alphamepol,slope_hmepol $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/slope
+	hmepol sweep experiment=corridor_mepol,corridor_alphamepol,corridor_hmepol wind=0.05,0.15,0.25,0.4 $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/corridor
 	hmepol sweep experiment=multigrid_alphamepol,multigrid_hmepol seed=0,1,2,3 $(FULL) hydra.sweep.dir=$(FULL_DIR)/multigrid
-	hmepol report $(FULL_DIR) --out $(FULL_DIR)/report
+	if [ "$(DRY)" != true ]; then hmepol report $(FULL_DIR) --out $(FULL_DIR)/report; fi
+
+reproduce: chapter5 finetune-corridor
 
 # What RESULTS.md's full-scale section ran: the corridor at wind 0.4 (~20 minutes of one H100).
 reproduce-corridor:

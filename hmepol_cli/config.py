@@ -133,6 +133,9 @@ class Config:
     # A population of members with their own member-scalar overrides, one string each
     # ("seed=0 wind=0.05"); what hydra/launcher=population writes.
     members: list[str] | None = None
+    # Members stepped together in one batched call (0: all on a CPU, as many as fit in the
+    # GPU's free memory on a GPU); chunks change no number, only memory and speed.
+    chunk_members: int = 0
     device: str = "cpu"  # cpu | cuda | auto
     # float32 | float64 | bf16 (the hidden layers' products in bfloat16, CPU or GPU) | tf32
     # (TF32 products, GPU only); hmepol_cli/precision.py says where each applies
@@ -318,6 +321,8 @@ def validate(cfg: DictConfig) -> None:
             f"estimator.k={cfg.estimator.k} must be smaller than the particles of a mini-batch "
             f"(batch_size * horizon = {cfg.algo.batch_size * cfg.algo.horizon})"
         )
+    if cfg.chunk_members < 0:
+        raise ConfigError(f"chunk_members={cfg.chunk_members!r} must be a whole number >= 0")
     if cfg.checkpoint.keep_every < 0:
         raise ConfigError(
             f"checkpoint.keep_every={cfg.checkpoint.keep_every!r} must be a whole number >= 0"

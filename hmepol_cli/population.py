@@ -148,6 +148,15 @@ class PolicyPopulation:
         """Policy.log_prob of the selected members. (S', N, T, ...) -> (S', N, T)"""
         return self.call("log_prob", members, states, actions, histories, bptt=bptt)
 
+    def bytes_per_member(self, particles: int) -> int:
+        """An estimate of one member's memory in the off-policy loop: every linear layer's
+        output over all particles, kept for the backward pass, its gradient, and a lowered copy
+        (x 3), plus the weights, their gradients and Adam's moments (x 4)."""
+        width = sum(m.out_features for m in self.template.modules() if isinstance(m, nn.Linear))
+        weights = sum(v[0].numel() for v in self.params.values())
+        itemsize = torch.finfo(self.dtype).bits // 8
+        return itemsize * (3 * particles * (width + self.history_size) + 4 * weights)
+
     # ------------------------------------------------------------------ members as policies
     def member_state_dict(self, s: int) -> dict[str, torch.Tensor]:
         """Member s as an ordinary policy's state dict (what checkpoints hold)."""

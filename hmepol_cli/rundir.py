@@ -86,6 +86,7 @@ RESUMABLE_KEYS = (
     "skip_finished",
     "seeds",
     "members",
+    "chunk_members",
     "env.workers",  # a Gymnasium world's processes: the same episodes with any count
     "diagnostics",  # what is recorded, not what is computed
     "checkpoint",

@@ -308,13 +308,33 @@ class Trainer:
 
     def epoch(self, due: list[int] | None = None) -> list[EpochStats]:
         """One epoch of Algorithm 3.1 (:func:`hmepol_cli.mepol.epoch`) for the members ``due``
-        (default: all). -> their stats, in that order."""
+        (default: all), ``chunk`` members at a time. -> their stats, in that order."""
         due = list(range(self.size)) if due is None else due
-        generators = [self.members[s].generator for s in due]
-        return mepol.epoch(
-            self.world, self.population, self.optimizer, self.settings, due, generators,
-            graphs=self.graphs,
-        )  # fmt: skip
+        stats = []
+        for start in range(0, len(due), self.chunk):
+            part = due[start : start + self.chunk]
+            generators = [self.members[s].generator for s in part]
+            stats += mepol.epoch(
+                self.world, self.population, self.optimizer, self.settings, part, generators,
+                graphs=self.graphs,
+            )  # fmt: skip
+        return stats
+
+    @property
+    def chunk(self) -> int:
+        """Members stepped together (``chunk_members``; 0: all of them on a CPU, as many as fit
+        in the GPU's free memory on a GPU). Members are independent: chunks change no number."""
+        if self.cfg.get("chunk_members", 0):
+            return int(self.cfg.chunk_members)
+        if self.device.type != "cuda":
+            return self.size
+        if not hasattr(self, "_fitting"):
+            free, _ = torch.cuda.mem_get_info(self.device)
+            need = self.population.bytes_per_member(
+                self.settings.trajectories * self.settings.horizon
+            )
+            self._fitting = max(1, min(self.size, int(0.8 * free // need)))
+        return self._fitting
 
     # ------------------------------------------------------------------ evaluation
     def save_evaluation(self, name: str) -> list[Path]:

@@ -240,3 +240,20 @@ def test_sweep_jobs_and_folders_are_named_as_hydra_names_them(overrides):
     for job in theirs:
         expected = get_overrides_dirname(sweeps.parse(job), ["seed"], "_", "-")
         assert sweeps.override_dirname(job, ["seed"], "_", "-") == expected
+
+
+@pytest.mark.slow
+def test_chapter_5_slope_is_two_programs(tmp_path):
+    """make chapter5's slope sweep, planned (dry run): Mepol and alpha-Mepol's 16 runs are one
+    population (one network; the objective and alpha are member-scalar), HMepol's 8 another."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "hmepol_cli.cli", "sweep",
+         "experiment=slope_mepol,slope_alphamepol,slope_hmepol", "seed=0,1,2,3,4,5,6,7",
+         "hydra/launcher=population", "hydra.launcher.dry_run=true",
+         f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "24 runs as 2 jobs (populations of 16, 8 members)" in proc.stdout
+    assert "they differ in policy.name" in proc.stdout
+    assert not list((tmp_path / "sweep").glob("*/run.json"))  # nothing ran

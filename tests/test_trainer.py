@@ -377,3 +377,29 @@ def test_runs_that_differ_in_the_program_cannot_share_a_population(tmp_path):
             [compose_cfg("seed=0"), compose_cfg("seed=1", "policy.hidden=[8]")],
             [tmp_path / "a", tmp_path / "b"],
         )
+
+
+def test_members_stepped_in_chunks_train_as_all_together(tmp_path):
+    """chunk_members=2 steps a population of four as two batched calls: the same epochs (to
+    float tolerance: a CPU rollout's batched products round with the batch)."""
+    seeds = (0, 1, 2, 3)
+    whole = population(tmp_path / "whole", seeds)
+    chunked = population(tmp_path / "chunked", seeds, "chunk_members=2")
+    assert (whole.chunk, chunked.chunk) == (4, 2)
+    for _ in range(2):
+        for a, b in zip(whole.epoch(), chunked.epoch(), strict=True):
+            np.testing.assert_allclose(a.entropies, b.entropies, rtol=1e-5)
+            np.testing.assert_allclose(a.update.entropies, b.update.entropies, rtol=1e-4)
+            assert a.update.off_iters == b.update.off_iters
+
+
+def test_a_gpu_population_is_cut_to_the_free_memory():
+    from hmepol_cli.config import PolicyConfig
+    from hmepol_cli.policies import make_policy
+    from hmepol_cli.population import PolicyPopulation
+
+    cfg = PolicyConfig(name="recursive")  # the thesis' (300, 300) networks, |h'| = 100
+    pop = PolicyPopulation([make_policy(cfg, 2, 2)])
+    # The corridor's 40,000 particles: every layer's output (300 x 4 + 100 + 2) plus h', x 3,
+    # in float32: ~0.65 GB a member.
+    assert 0.5e9 < pop.bytes_per_member(40_000) < 0.8e9

@@ -52,6 +52,7 @@ RUN_SPECIFIC_KEYS = {
     # A population (seeds=[...]) and how its members were batched on the device.
     "seeds",
     "members",
+    "chunk_members",
     "vmap",
     "cuda_graphs",
     "matmul_precision",

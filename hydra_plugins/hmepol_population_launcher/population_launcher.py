@@ -87,9 +87,10 @@ def _summary(n_jobs: int, sizes: list[int], groups: list[tuple[dict, list]]) -> 
 
 
 class PopulationLauncher(Launcher):
-    def __init__(self, inner: DictConfig, max_members: int = 0) -> None:
+    def __init__(self, inner: DictConfig, max_members: int = 0, dry_run: bool = False) -> None:
         self.inner_config = inner
         self.max_members = int(max_members)
+        self.dry_run = bool(dry_run)
         self.inner: Launcher | None = None
         self.hydra_context: HydraContext | None = None
         self.config: DictConfig | None = None
@@ -122,4 +123,8 @@ class PopulationLauncher(Launcher):
         assert self.inner is not None
         jobs, summary = group_jobs(job_overrides, self._program, self.max_members)
         print(f"hmepol: {summary}", flush=True)
+        if self.dry_run:  # the plan only: each population job's overrides, nothing run
+            for job in jobs:
+                print("  " + " ".join(job), flush=True)
+            return []
         return self.inner.launch(jobs, initial_job_idx)
