@@ -9,9 +9,8 @@ the policy's own code for every member at once:
 - or a loop over the members, each an ordinary call on its slice: the same matrix products as
   S separate runs, which is what a CPU does fastest (batched products are ~25% slower there).
 
-Both compute the same function; ``vectorize="auto"`` picks vmap on CUDA, and on a CPU for the
-small products of a rollout's steps only (measured bit-identical to a loop). A single run is a
-population of one. :class:`PopulationAdam` is Adam with a learning rate and a step count per
+Both compute the same function; ``vectorize="auto"`` picks vmap on CUDA and the loop on a CPU,
+where a member then equals a run of its own bit for bit. A single run is a population of one. :class:`PopulationAdam` is Adam with a learning rate and a step count per
 member, updating only the members a mask selects, so each member keeps its own trust region.
 """
 
@@ -78,10 +77,12 @@ class PolicyPopulation:
         return self
 
     def _vmapped(self, method: str = "log_prob") -> bool:
-        """vmap on a GPU; on a CPU, for a rollout's steps only (many small products: one call
-        for all members beats S calls), never for the update's large products."""
+        """vmap on a GPU; on a CPU a loop over the members, each an ordinary call on its
+        slice: the same products as a run of its own, so a member's numbers equal its run's
+        bit for bit (batched products round differently: 1 ulp in a rollout's actions, seen
+        with small networks). ``vectorize=True`` (vmap=on) batches a CPU's calls too."""
         if self.vectorize == "auto":
-            return self.device.type == "cuda" or (method == "act" and self.size > 1)
+            return self.device.type == "cuda"
         return bool(self.vectorize)
 
     # ------------------------------------------------------------------ calls

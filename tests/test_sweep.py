@@ -179,7 +179,7 @@ def test_a_sweep_over_winds_and_seeds_runs_as_one_population_of_four(tmp_path):
     for run_dir in separate:
         a = pd.read_csv(tmp_path / "population" / "sweep" / run_dir.name / "epochs.csv")
         b = pd.read_csv(run_dir / "epochs.csv")
-        pd.testing.assert_frame_equal(a.drop(columns=drop), b.drop(columns=drop), rtol=1e-4)
+        pd.testing.assert_frame_equal(a.drop(columns=drop), b.drop(columns=drop), check_exact=True)
     report = subprocess.run(
         [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "population" / "sweep")],
         capture_output=True,
