@@ -17,7 +17,6 @@ import os
 import re
 import secrets
 import sys
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -36,8 +35,9 @@ from omegaconf.errors import OmegaConfBaseException
 
 from hmepol_cli import sweeps
 from hmepol_cli.config import register_configs, validate
-from hmepol_cli.errors import ConfigError, RunFailure, UserError
+from hmepol_cli.errors import ConfigError, Interrupted, RunDirError, RunFailure, UserError
 from hmepol_cli.rundir import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
+from hmepol_cli.signals import preemptible
 from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
 
 log = logging.getLogger("hmepol")
@@ -317,7 +317,10 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
         validate(cfg)
         info_file = run_dir / RUN_INFO
         if not resume and info_file.exists():
-            info = read_json(info_file)
+            try:
+                info = read_json(info_file)
+            except RunDirError:  # damaged: the run rewrites it when it opens its directory
+                info = {}
             if (
                 cfg.skip_finished
                 and info.get("status") == "finished"
@@ -332,7 +335,11 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
         for _, run_dir in todo:
             print(f"hmepol: training into {run_dir}", flush=True)
         trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
-        trainer.train(resume=resuming)
+        try:
+            trainer.train(resume=resuming)
+        except Interrupted as error:  # say where each run stopped
+            error.runs = [(d, _epochs_done(d)) for _, d in todo]
+            raise
         failures = trainer.failures
         for run_dir in (d for _, d in todo if d not in failures):
             print(f"hmepol: run written to {run_dir}")
@@ -343,8 +350,16 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
     return [str(d) for _, d in members]
 
 
+def _epochs_done(run_dir: Path) -> int:
+    try:
+        return int(read_json(run_dir / RUN_INFO).get("epochs_done", 0))
+    except (RunDirError, OSError):
+        return 0
+
+
 def _report_job(outcome: str, cfg: DictConfig, reason: str = "") -> None:
-    """Tell the sweep that started this job how it ended (a line in its status file)."""
+    """Tell the sweep that started this job how it ended (a line in its status file, which
+    lies in the sweep's folder, so that a job on another host of a cluster can write it)."""
     path = os.environ.get(SWEEP_STATUS)
     if not path:
         return
@@ -353,44 +368,69 @@ def _report_job(outcome: str, cfg: DictConfig, reason: str = "") -> None:
         f.write(json.dumps({"job": job, "outcome": outcome, "reason": reason}) + "\n")
 
 
+def interrupted_line(error: Interrupted) -> str:
+    """What an interrupted command says: where each run stopped, and how to go on."""
+    kept = ", ".join(f"{d} up to epoch {n}" for d, n in getattr(error, "runs", [])) or "its runs"
+    return f"{error}: kept {kept} (the last checkpoint); run the same command again to continue"
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
 def train_app(cfg: DictConfig) -> list[str] | None:
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
-    try:
-        runs = _train(cfg)
-    except UserError as error:
-        if multirun:
-            # Let Hydra mark the job failed (the sweep goes on, and exits 1 at the end).
-            _report_job("failed", cfg, str(error))
-            raise
-        fail(str(error), code=1 if isinstance(error, RunFailure) else 2)
+    with preemptible():
+        try:
+            runs = _train(cfg)
+        except UserError as error:
+            if multirun:  # the sweep goes on, and ends with a table of its failed jobs
+                _report_job("failed", cfg, str(error))
+                return None
+            fail(str(error), code=1 if isinstance(error, RunFailure) else 2)
+        except Interrupted as error:
+            _report_job("interrupted", cfg, str(error))
+            print(f"hmepol: {interrupted_line(error)}", file=sys.stderr, flush=True)
+            raise SystemExit(error.exit_code) from None
     _report_job("done", cfg)
     return runs
 
 
-def _sweep(args: list[str]) -> None:
-    """Run a Hydra multirun; end with a table of the jobs that failed, and exit 1 if any did."""
+def _sweep(args: list[str], n_jobs: int = 0) -> None:
+    """Run a Hydra multirun; end with a table of the jobs that failed or were interrupted (and
+    how many never started), and exit 1 (failed) or 128 + the signal (interrupted)."""
     launcher = (
         [] if any(a.startswith("hydra/launcher=") for a in args) else ["hydra/launcher=local"]
     )
-    fd, status = tempfile.mkstemp(prefix="hmepol-sweep-", suffix=".jsonl")
-    os.close(fd)
-    os.environ[SWEEP_STATUS] = status
+    sweep_dir = next(
+        (a.partition("=")[2] for a in args if a.startswith("hydra.sweep.dir=")), "outputs/sweep"
+    )
+    Path(sweep_dir).mkdir(parents=True, exist_ok=True)
+    status = Path(sweep_dir) / f".hmepol-sweep-{secrets.token_hex(4)}.jsonl"
+    status.touch()
+    os.environ[SWEEP_STATUS] = str(status.resolve())
     sys.argv = ["hmepol", "--multirun", *launcher, *args]
     code = 0
     try:
-        train_app()
-    except SystemExit as exit_:  # Hydra exits 1 after the batch when a job failed
+        with preemptible():
+            train_app()
+    except SystemExit as exit_:  # a job was interrupted, or Hydra ended the sweep
         code = exit_.code if isinstance(exit_.code, int) else 1
+    except Interrupted as error:  # the signal reached this process while it waited for jobs
+        code = error.exit_code
     finally:
-        lines = Path(status).read_text().splitlines()
-        Path(status).unlink(missing_ok=True)
-    failed = [json.loads(line) for line in lines if json.loads(line)["outcome"] == "failed"]
-    if failed:
-        print(f"hmepol: {len(failed)} of {len(lines)} jobs failed:", file=sys.stderr)
-        for job in failed:
-            print(f"  {job['job']}\n      {job['reason']}", file=sys.stderr)
-        print("hmepol: run the sweep again to retry them", file=sys.stderr)
+        lines = [json.loads(line) for line in status.read_text().splitlines() if line]
+        status.unlink(missing_ok=True)
+        os.environ.pop(SWEEP_STATUS, None)
+    for outcome in ("failed", "interrupted"):
+        jobs = [job for job in lines if job["outcome"] == outcome]
+        if jobs:
+            print(f"hmepol: {len(jobs)} of {n_jobs or len(lines)} jobs {outcome}:", file=sys.stderr)
+            for job in jobs:
+                print(f"  {job['job']}\n      {job['reason']}", file=sys.stderr)
+    unstarted = n_jobs - len(lines) if n_jobs and code > 128 else 0
+    if unstarted > 0:
+        print(f"hmepol: {unstarted} of {n_jobs} jobs did not start", file=sys.stderr)
+    if any(job["outcome"] != "done" for job in lines) or unstarted:
+        print("hmepol: run the sweep again to retry or continue them", file=sys.stderr)
+    if any(job["outcome"] == "failed" for job in lines):
         code = code or 1
     if code:
         raise SystemExit(code)
@@ -401,10 +441,15 @@ def _sweep(args: list[str]) -> None:
 def finetune_app(cfg: DictConfig) -> str | None:
     from hmepol_cli.finetune import finetune
 
-    try:
-        return str(finetune(cfg))
-    except UserError as error:
-        fail(str(error))
+    with preemptible():
+        try:
+            return str(finetune(cfg))
+        except UserError as error:
+            fail(str(error))
+        except Interrupted as error:
+            print(f"hmepol: {error}: the fine-tuning's rows so far are kept; running it again "
+                  "starts it over", file=sys.stderr, flush=True)  # fmt: skip
+            raise SystemExit(error.exit_code) from None
     return None
 
 
@@ -496,8 +541,10 @@ def main(argv: list[str] | None = None) -> None:
             train_app()
         elif command == "sweep":
             if not _asks_for_help(rest):
-                check_sweep([a for a in rest if not a.startswith("-")])
-            _sweep(rest)
+                n_jobs = check_sweep([a for a in rest if not a.startswith("-")])
+            else:
+                n_jobs = 0
+            _sweep(rest, n_jobs)
         elif command == "finetune":
             if not _asks_for_help(rest):
                 from hmepol_cli.config import FinetuneConfig

@@ -20,3 +20,25 @@ class RunDirError(UserError):
 
 class RunFailure(UserError):
     """A run stopped because its numbers stopped making sense (non-finite values)."""
+
+
+class StorageError(UserError):
+    """A file could not be written (a full disk, a quota, a read-only folder)."""
+
+
+class Interrupted(BaseException):
+    """SIGTERM (a cluster's preemption or time limit) or SIGINT (Ctrl-C) arrived: the command
+    stops where it is, records its runs as interrupted, and exits with 128 + the signal.
+
+    A BaseException, like KeyboardInterrupt, so that no ``except Exception`` swallows it."""
+
+    def __init__(self, signum: int) -> None:
+        import signal
+
+        self.signum = signum
+        self.name = signal.Signals(signum).name
+        super().__init__(f"interrupted by {self.name}")
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum

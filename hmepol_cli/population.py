@@ -10,7 +10,8 @@ the policy's own code for every member at once:
   S separate runs, which is what a CPU does fastest (batched products are ~25% slower there).
 
 Both compute the same function; ``vectorize="auto"`` picks vmap on CUDA and the loop on a CPU,
-where a member then equals a run of its own bit for bit. A single run is a population of one. :class:`PopulationAdam` is Adam with a learning rate and a step count per
+where a member then equals a run of its own bit for bit. A single run is a population of one.
+:class:`PopulationAdam` is Adam with a learning rate and a step count per
 member, updating only the members a mask selects, so each member keeps its own trust region.
 """
 

@@ -27,6 +27,7 @@ keeps the config it started with: continuing it with another config is refused.
 from __future__ import annotations
 
 import contextlib
+import csv
 import datetime
 import hashlib
 import io
@@ -50,7 +51,7 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from hmepol_cli.errors import RunDirError
+from hmepol_cli.errors import Interrupted, RunDirError
 
 CONFIG = "config.yaml"
 RUN_INFO = "run.json"
@@ -125,7 +126,17 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
 
 
 def read_json(path: Path) -> dict[str, Any]:
-    return json.loads(Path(path).read_text())
+    """A JSON file written by hmepol; a damaged one is refused in one line naming it."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise RunDirError(
+            f"{path} is damaged ({type(error).__name__}: {str(error)[:80]}); a run rewrites its "
+            "run.json when it is continued, or delete the run directory"
+        ) from None
+    if not isinstance(data, dict):
+        raise RunDirError(f"{path} is damaged (it holds a {type(data).__name__}, not a record)")
+    return data
 
 
 def write_csv(path: Path, frame: pd.DataFrame) -> None:
@@ -446,6 +457,11 @@ class RunDirectory:
         self.lock.acquire()
         try:
             remove_temporaries(self.path)
+            try:
+                self.info()
+            except RunDirError as damaged:  # its owner rebuilds it: the results are elsewhere
+                warnings.warn(f"{damaged}: rewriting it", stacklevel=2)
+                (self.path / RUN_INFO).unlink()
             if config_file.is_file():
                 differences = identity_differences(OmegaConf.load(config_file), self.cfg)
                 if differences:
@@ -491,6 +507,15 @@ class RunDirectory:
             failure={"reason": reason, "epoch": epoch, "last_finite": last or {}, "at": _now()},
         )
 
+    def interrupt(self, signal_name: str) -> None:
+        """Record that the run was stopped by a signal; the next run of the command continues."""
+        info = self.info()
+        self.update(
+            status="interrupted",
+            interruption={"signal": signal_name, "epochs_done": info.get("epochs_done", 0),
+                          "at": _now()},
+        )  # fmt: skip
+
     def close(self) -> None:
         self.lock.release()
 
@@ -502,50 +527,148 @@ class RunDirectory:
 
 
 # ------------------------------------------------------------------------------ training CSVs
+def row_digest(rows: pd.DataFrame) -> str:
+    """A digest of some rows' values, the same whether taken from the rows as written or as
+    read back from their CSV (numbers compared as floats, by their exact value)."""
+
+    def canon(value: Any) -> str:
+        if isinstance(value, bool | np.bool_):
+            return str(bool(value))
+        if isinstance(value, int | float | np.number):
+            number = float(value)
+            return "nan" if math.isnan(number) else repr(number)
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return "nan"
+        return str(value)
+
+    columns = [c for c in rows.columns if c != LINE]
+    text = "\n".join(
+        "|".join(canon(v) for v in row) for row in rows[columns].itertuples(index=False)
+    )
+    return hashlib.sha256(("|".join(columns) + "\n" + text).encode()).hexdigest()[:16]
+
+
+LINE = "_line"  # the file line a row was read from (1 = the header), kept out of the files
+
+
 class RunTables:
     """The CSV files of a run directory (training: epochs.csv, batches.csv and, with
     diagnostics, steps.csv; fine-tuning: finetune.csv), rewritten atomically whenever rows are
     added, so a reader never sees half a file.
 
-    Every row carries an ``epoch``; rows of epochs a checkpoint does not cover are dropped on
-    resume (:meth:`truncate`), so every epoch appears exactly once."""
+    Every row carries an ``epoch``. ``digests`` holds, per table, a digest of each epoch's rows
+    as they were written; a checkpoint keeps the digests of the epochs it covers, and on resume
+    :meth:`verify` keeps exactly those rows: rows past the checkpoint are dropped, and a row the
+    checkpoint covers that is missing, changed, cut, duplicated or unreadable is refused in one
+    line naming the file and the line. So every epoch appears exactly once, as it was written."""
 
     def __init__(self, run_dir: Path, names: Sequence[str], optional: Sequence[str] = ()) -> None:
         """``optional`` tables are written only once they have rows."""
         self.run_dir, self.optional = Path(run_dir), set(optional)
+        self.damaged: dict[str, list[tuple[int, str]]] = {}
         self.tables = {name: self._read(name) for name in (*names, *optional)}
+        self.digests: dict[str, list[str]] = {name: [] for name in self.tables}
 
     def __getitem__(self, name: str) -> pd.DataFrame:
-        return self.tables[name]
+        return self.tables[name].drop(columns=[LINE], errors="ignore")
 
     def _read(self, name: str) -> pd.DataFrame:
+        """The rows of a table that can be read, with the line each came from; the lines that
+        cannot (a wrong number of fields, an epoch that is not a whole number) in ``damaged``."""
         path = self.run_dir / name
-        return pd.read_csv(path) if path.is_file() else pd.DataFrame()
+        self.damaged[name] = []
+        if not path.is_file():
+            return pd.DataFrame()
+        try:
+            text = path.read_text()
+        except UnicodeDecodeError:
+            raise RunDirError(f"{path} is not a text file; restore it or start over") from None
+        lines = text.splitlines()
+        if not lines:
+            return pd.DataFrame()
+        header = next(csv.reader([lines[0]]))
+        epoch = header.index("epoch") if "epoch" in header else None
+        good = []
+        for number, line in enumerate(lines[1:], start=2):
+            fields = next(csv.reader([line]), [])
+            if len(fields) != len(header):
+                self.damaged[name].append((number, f"{len(fields)} fields for {len(header)}"))
+            elif epoch is not None and not fields[epoch].isdigit():
+                self.damaged[name].append((number, f"epoch {fields[epoch]!r}"))
+            else:
+                good.append(number)
+        keep = set(good)
+        frame = pd.read_csv(path, skiprows=lambda i: i > 0 and i + 1 not in keep)
+        frame[LINE] = good
+        return frame
 
     def truncate(self, next_epoch: int) -> None:
         """Keep only epochs < next_epoch (the ones the checkpoint covers)."""
         for name, table in self.tables.items():
             if len(table):
                 self.tables[name] = table[table["epoch"] < next_epoch]
+            self.digests[name] = self.digests[name][:next_epoch]
+        self.damaged = {name: [] for name in self.tables}
         self._flush()
 
+    def verify(self, next_epoch: int, digests: dict[str, list[str]] | None) -> None:
+        """Resume at ``next_epoch``: check the rows of the epochs the checkpoint covers against
+        its ``digests`` (None: a checkpoint from before they existed: epochs.csv must then hold
+        each epoch exactly once), then drop every row past them."""
+        for name, table in self.tables.items():
+            path = self.run_dir / name
+            covered = table[table["epoch"] < next_epoch] if len(table) else table
+            last = int(covered[LINE].max()) if len(covered) else 1
+            for number, reason in self.damaged.get(name, []):
+                if number < last:  # among the rows the checkpoint covers
+                    raise RunDirError(
+                        f"{path} line {number} cannot be read ({reason}): it is among the "
+                        f"rows of the {next_epoch} epochs the checkpoint covers; restore the "
+                        "file, or start the run over in a new directory"
+                    )
+            expected = None if digests is None else digests.get(name)
+            if expected is None:
+                if name == EPOCHS_CSV and list(covered.get("epoch", [])) != list(range(next_epoch)):
+                    raise RunDirError(
+                        f"{path} does not hold epochs 0..{next_epoch - 1} exactly once (it has "
+                        f"{sorted(set(covered.get('epoch', [])))[:8]}...); restore the file, or "
+                        "start the run over in a new directory"
+                    )
+                continue
+            for e in range(next_epoch):
+                rows = covered[covered["epoch"] == e] if len(covered) else covered
+                if row_digest(rows) == expected[e]:
+                    continue
+                where = f"line {int(rows[LINE].iloc[0])}" if len(rows) else "no row"
+                raise RunDirError(
+                    f"{path} {where} (epoch {e}) is not what the run wrote (missing, changed, "
+                    f"cut or duplicated); restore the file, or start the run over in a new "
+                    "directory"
+                )
+            self.digests[name] = list(expected[:next_epoch])
+        self.truncate(next_epoch)
+
     def append(self, **rows: pd.DataFrame | None) -> None:
-        """Add rows to the tables named by the keywords (a table's file name without .csv)."""
-        for key, new in rows.items():
-            name = f"{key}.csv"
+        """Add one epoch's rows to the tables named by the keywords (a table's file name without
+        .csv; every table of a training run gets its epoch's digest, empty or not)."""
+        for name in self.tables:
+            new = rows.get(name.removesuffix(".csv"))
+            if name.removesuffix(".csv") not in rows:
+                continue
             if new is not None and len(new):
                 self.tables[name] = pd.concat([self.tables[name], new], ignore_index=True)
+            self.digests[name].append(row_digest(new if new is not None else pd.DataFrame()))
         self._flush()
 
     def _flush(self) -> None:
         for name, table in self.tables.items():
             if name not in self.optional or len(table) or (self.run_dir / name).exists():
-                write_csv(self.run_dir / name, table)
+                write_csv(self.run_dir / name, table.drop(columns=[LINE], errors="ignore"))
 
     @property
     def last_finite(self) -> dict[str, float]:
         """The last row's finite numbers of the first table (what a failure record keeps)."""
-        table = next(iter(self.tables.values()))
+        table = self[next(iter(self.tables))]
         if not len(table):
             return {}
         row = table.iloc[-1]
@@ -582,11 +705,14 @@ def writing(
     try:
         yield opened
     except BaseException as error:
+        stopped = isinstance(error, Interrupted | KeyboardInterrupt)
         reason = f"{type(error).__name__}: {error}".splitlines()[0][:300]
-        if isinstance(error, KeyboardInterrupt):
-            reason = "interrupted (KeyboardInterrupt)"
         for directory in opened:
-            if directory.info().get("status") == "running":
+            if directory.info().get("status") != "running":
+                continue
+            if stopped:
+                directory.interrupt(getattr(error, "name", "SIGINT"))
+            else:
                 directory.fail(reason, last=last(directory))
         raise
     finally:

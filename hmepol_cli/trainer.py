@@ -125,6 +125,8 @@ class Trainer:
             "generator": member.generator.get_state(),
             "state_dim": self.world.state_dim,
             "action_dim": self.world.action_dim,
+            # Digests of each epoch's CSV rows: a resume checks the files against them.
+            "tables": {name: list(d) for name, d in member.log.digests.items()},
         }
         save_checkpoint(member.run_dir / CHECKPOINT, state)
         keep_every = int(self.cfg.checkpoint.keep_every)
@@ -152,7 +154,8 @@ class Trainer:
                     f"{path} does not match the run's policy and optimizer "
                     f"({str(error).splitlines()[0][:100]}); it cannot be resumed"
                 ) from None
-            member.log.truncate(member.start_epoch)  # rows the checkpoint does not cover
+            # The rows the checkpoint covers, checked; the ones it does not cover, dropped.
+            member.log.verify(member.start_epoch, state.get("tables"))
             restored.append(s)
         return restored
 

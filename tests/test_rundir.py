@@ -24,6 +24,7 @@ from hmepol_cli.rundir import (
     RUN_INFO,
     RunDirectory,
     atomic_write_text,
+    read_json,
 )
 from hmepol_cli.trainer import Trainer
 from tests.test_trainer import compose_cfg
@@ -193,3 +194,78 @@ def test_a_stall_warns(tmp_path, caplog):
         train_runs([(cfg, tmp_path / "run")])
     assert "no off-policy step accepted for 2 epochs" in caplog.text
     assert (pd.read_csv(tmp_path / "run" / EPOCHS_CSV).off_iters == 0).all()
+
+
+# ------------------------------------------------------------------ damaged files on resume
+def trained(tmp_path, epochs: int = 3):
+    """A finished tiny run of ``epochs`` epochs, and a function that continues it to 5."""
+    run = tmp_path / "run"
+    Trainer(compose_cfg(f"epochs={epochs}"), run).train()
+
+    def resume() -> pd.DataFrame:
+        Trainer(compose_cfg("epochs=5"), run).train(resume=True)
+        return pd.read_csv(run / "epochs.csv")
+
+    return run, resume
+
+
+def edit_lines(path, change) -> None:
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text("".join(change(lines)))
+
+
+def test_rows_past_the_checkpoint_and_a_garbage_last_line_are_dropped(tmp_path):
+    run, resume = trained(tmp_path)
+    # A crash after an epoch's rows and before its checkpoint, then a line of garbage.
+    edit_lines(run / "epochs.csv", lambda lines: [*lines, lines[-1].replace("2,", "3,", 1),
+                                                  "x,y\n"])  # fmt: skip
+    epochs = resume()
+    assert list(epochs.epoch) == [0, 1, 2, 3, 4]
+    assert epochs.entropy.notna().all()
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda lines: lines[:-1], r"epochs.csv no row \(epoch 2\) is not what the run wrote"),
+        (lambda lines: [*lines[:3], lines[2], *lines[3:]], r"line 3 \(epoch 1\)"),  # duplicated
+        (lambda lines: [lines[0], lines[1], "1,garbage\n", *lines[3:]], r"line 3 cannot be read"),
+    ],
+    ids=["deleted", "duplicated", "garbage"],
+)
+def test_a_missing_or_damaged_row_is_refused_naming_the_file_and_line(tmp_path, damage, message):
+    run, resume = trained(tmp_path)
+    edit_lines(run / "epochs.csv", damage)
+    with pytest.raises(RunDirError, match=message):
+        resume()
+
+
+def test_a_number_cut_short_is_refused(tmp_path):
+    run, resume = trained(tmp_path)
+    rows = pd.read_csv(run / "epochs.csv")
+    entropy = repr(float(rows.entropy[1]))
+
+    def cut(lines):
+        assert entropy in lines[2]
+        return [*lines[:2], lines[2].replace(entropy, entropy[:6], 1), *lines[3:]]
+
+    edit_lines(run / "epochs.csv", cut)
+    with pytest.raises(RunDirError, match=r"epochs.csv line 3 \(epoch 1\)"):
+        resume()
+
+
+def test_a_damaged_batches_csv_is_refused_too(tmp_path):
+    run, resume = trained(tmp_path)
+    edit_lines(run / "batches.csv", lambda lines: [*lines[:4], *lines[5:]])
+    with pytest.raises(RunDirError, match=r"batches.csv line \d+ \(epoch 1\)"):
+        resume()
+
+
+def test_a_damaged_run_json_is_rewritten_by_the_run_that_continues(tmp_path, recwarn):
+    run, resume = trained(tmp_path, epochs=2)
+    (run / "run.json").write_text("{not json")
+    with pytest.raises(RunDirError, match=r"run.json is damaged \(JSONDecodeError"):
+        read_json(run / "run.json")
+    assert list(resume().epoch) == [0, 1, 2, 3, 4]
+    assert read_json(run / "run.json")["status"] == "finished"
+    assert any("rewriting it" in str(w.message) for w in recwarn)
