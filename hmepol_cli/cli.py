@@ -17,6 +17,7 @@ import os
 import re
 import secrets
 import sys
+import types
 import warnings
 from pathlib import Path
 
@@ -35,7 +36,14 @@ from omegaconf.errors import OmegaConfBaseException
 
 from hmepol_cli import sweeps
 from hmepol_cli.config import register_configs, validate
-from hmepol_cli.errors import ConfigError, Interrupted, RunDirError, RunFailure, UserError
+from hmepol_cli.errors import (
+    ConfigError,
+    Interrupted,
+    RunDirError,
+    RunFailure,
+    StorageError,
+    UserError,
+)
 from hmepol_cli.rundir import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
 from hmepol_cli.signals import preemptible
 from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
@@ -119,7 +127,7 @@ def compose(config_name: str, overrides: list[str]) -> DictConfig:
         with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
             return hydra_compose(config_name=config_name, overrides=task)
     except (HydraException, OmegaConfBaseException) as error:
-        raise ConfigError(_hydra_message(error)) from None
+        raise ConfigError(_hydra_message(error, config_name)) from None
     except AssertionError:  # OmegaConf, setting a key below a group left at null
         nested = [o for o in task if "." in o.partition("=")[0]]
         raise ConfigError(
@@ -130,14 +138,98 @@ def compose(config_name: str, overrides: list[str]) -> DictConfig:
         GlobalHydra.instance().clear()
 
 
-def _hydra_message(error: Exception) -> str:
-    """Hydra's and OmegaConf's errors, as one line."""
+def _hydra_message(error: Exception, config_name: str = "config") -> str:
+    """Hydra's and OmegaConf's errors, as one line that says what is allowed."""
     text = str(error)
-    key = re.search(r"Key '([^']+)' (?:is )?not in", text)
+    key = re.search(r"Key '([^']+)' (?:is )?not in", text) or re.search(
+        r"Could not override '([^']+)'", text
+    )
     if key:
-        return f"unknown key {key.group(1)!r}: not a hmepol setting (--help lists them)"
+        return _unknown_key(key.group(1), config_name)
+    choice = re.search(r"Could not find '([^']+)/([^'/]+)'", text)
+    if choice:
+        group, name = choice.groups()
+        options = _group_options(group)
+        listed = f"; choose one of: {', '.join(options)}" if options else ""
+        return f"{group}={name!r} is not an option of {group}{listed}"
+    merging = re.search(r"Error merging override (\S+?)=(.*)", text)
+    if merging:
+        name, value = merging.groups()
+        kind = _schema_kind(name.lstrip("+~"), config_name)
+        return f"{name}={value!r} is not allowed: {name} takes {kind}"
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     return lines[0] if lines else type(error).__name__
+
+
+def _schema(config_name: str):
+    from hmepol_cli.config import Config, FinetuneConfig
+
+    return FinetuneConfig if config_name == "finetune" else Config
+
+
+def _schema_keys(cls, prefix: str = "") -> list[str]:
+    """Every dotted key of a schema dataclass."""
+    import dataclasses
+    import typing
+
+    keys = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        inner = [t for t in typing.get_args(hints[f.name]) or [hints[f.name]]
+                 if dataclasses.is_dataclass(t)]  # fmt: skip
+        keys.append(f"{prefix}{f.name}")
+        if inner:
+            keys += _schema_keys(inner[0], f"{prefix}{f.name}.")
+    return keys
+
+
+def _unknown_key(key: str, config_name: str) -> str:
+    import difflib
+
+    keys = _schema_keys(_schema(config_name))
+    near = difflib.get_close_matches(key, keys, n=3, cutoff=0.6)
+    if not near:  # the right name in the wrong place (lr for algo.lr)
+        leaves = {k.rpartition(".")[2]: k for k in keys}
+        near = [leaves[m] for m in difflib.get_close_matches(key, list(leaves), n=2, cutoff=0.6)]
+    hint = f"; did you mean {' or '.join(near)}?" if near else " (--help lists the settings)"
+    return f"unknown key {key!r}: not a hmepol setting{hint}"
+
+
+def _group_options(group: str) -> list[str]:
+    """The options of a config group: its YAML files (hydra/launcher: ours and Hydra's)."""
+    from importlib.resources import files
+
+    folder = files(CONFIG_MODULE).joinpath(*group.split("/"))
+    options = sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+    if group == "hydra/launcher":
+        options = sorted({*options, "basic", "joblib", "submitit_local", "submitit_slurm"})
+    return options
+
+
+def _schema_kind(key: str, config_name: str) -> str:
+    """What a key of the schema takes, in words."""
+    import dataclasses
+    import typing
+
+    cls = _schema(config_name)
+    *parents, last = key.split(".")
+    try:
+        for part in parents:
+            hint = typing.get_type_hints(cls)[part]
+            cls = next(t for t in typing.get_args(hint) or [hint] if dataclasses.is_dataclass(t))
+        hint = typing.get_type_hints(cls)[last]
+    except (KeyError, StopIteration, TypeError):
+        return "another kind of value"
+    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+    args = [a for a in typing.get_args(hint) if a is not type(None)] if union else [hint]
+    optional = " (or null)" if union and type(None) in typing.get_args(hint) else ""
+    base = args[0]
+    words = {int: "a whole number", float: "a number", bool: "true or false", str: "text"}
+    if typing.get_origin(base) is list:
+        (item,) = typing.get_args(base) or (typing.Any,)
+        kind = {int: "whole numbers", float: "numbers"}.get(item, "values")
+        return f"a list of {kind}, e.g. [300,300]{optional}"
+    return words.get(base, "another kind of value") + optional
 
 
 def _check_known_keys(cfg: DictConfig, schema: DictConfig, prefix: str = "") -> None:
@@ -145,14 +237,22 @@ def _check_known_keys(cfg: DictConfig, schema: DictConfig, prefix: str = "") -> 
     for key in cfg:
         path = f"{prefix}{key}"
         if key not in schema:
-            raise ConfigError(f"unknown key {path!r}: not a hmepol setting (--help lists them)")
+            raise ConfigError(_unknown_key(path, "config"))
         node, spec = cfg[key], schema[key]
         if OmegaConf.is_dict(node) and OmegaConf.is_dict(spec):
             _check_known_keys(node, spec, f"{path}.")
 
 
 def _check_output_dirs(overrides: list[str]) -> None:
-    """An output folder given on the command line must be a folder, if it exists."""
+    """An output folder given on the command line must be a folder, if it exists; a launcher
+    must be one there is."""
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key == "hydra/launcher" and value not in _group_options("hydra/launcher"):
+            options = ", ".join(_group_options("hydra/launcher"))
+            raise ConfigError(
+                f"hydra/launcher={value!r} is not a launcher; choose one of: {options}"
+            )
     for item in overrides:
         key, _, value = item.partition("=")
         if key in ("hydra.run.dir", "hydra.sweep.dir", "output_dir") and value:
@@ -183,7 +283,7 @@ def check_sweep(overrides: list[str]) -> int:
     try:
         jobs = sweeps.jobs(task)
     except HydraException as error:
-        raise ConfigError(_hydra_message(error)) from None
+        raise ConfigError(_hydra_message(error, "config")) from None
     seen = set()
     for job in jobs:
         key = tuple(job)
@@ -205,8 +305,8 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> Dict
                 continue
             if key in RESUMABLE_KEYS or key.split(".")[0] in RESUMABLE_KEYS:
                 OmegaConf.update(saved, key, OmegaConf.select(cfg, key), force_add=True)
-            else:
-                changed.append(item)
+            elif OmegaConf.select(cfg, key) != OmegaConf.select(saved, key):
+                changed.append(item)  # giving a run the value it already has is no change
         saved.resume = str(run_dir)
     if changed:
         raise ConfigError(
@@ -340,6 +440,12 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
         except Interrupted as error:  # say where each run stopped
             error.runs = [(d, _epochs_done(d)) for _, d in todo]
             raise
+        except StorageError as error:
+            kept = ", ".join(f"{d} up to epoch {_epochs_done(d)}" for _, d in todo)
+            raise StorageError(
+                f"{error}: kept {kept} (the last checkpoint); free space and run the same command "
+                "again to continue"
+            ) from None
         failures = trainer.failures
         for run_dir in (d for _, d in todo if d not in failures):
             print(f"hmepol: run written to {run_dir}")
@@ -384,7 +490,7 @@ def train_app(cfg: DictConfig) -> list[str] | None:
             if multirun:  # the sweep goes on, and ends with a table of its failed jobs
                 _report_job("failed", cfg, str(error))
                 return None
-            fail(str(error), code=1 if isinstance(error, RunFailure) else 2)
+            fail(str(error), code=1 if isinstance(error, RunFailure | StorageError) else 2)
         except Interrupted as error:
             _report_job("interrupted", cfg, str(error))
             print(f"hmepol: {interrupted_line(error)}", file=sys.stderr, flush=True)

@@ -179,6 +179,8 @@ class FinetuneConfig(TRPOConfig):
 
     # a run directory or checkpoint of `hmepol train`, <run dir>@<epochs>, or none (scratch)
     init: str = "none"
+    # start from a run that is still being trained (its last checkpoint at that moment)
+    allow_running: bool = False
     env: EnvConfig | None = None  # null: the init run's world (slope for init=none)
     wind: float | None = None  # corridor wind; null: the init run's (0.4 for init=none)
     policy: PolicyConfig = field(default_factory=PolicyConfig)  # the fresh policy of init=none
@@ -242,11 +244,35 @@ def _positive(key: str, value: float) -> None:
         raise ConfigError(f"{key}={value!r} must be a finite number > 0")
 
 
+MAX_WIND = 12.0  # the corridor's side: a stronger wind crosses the whole arena in one step
+
+
 def check_wind(key: str, value: float | None, allow_none: bool = False) -> None:
     if value is None and allow_none:
         return
-    if value is None or not 0 <= value < math.inf:
-        raise ConfigError(f"{key}={value!r} must be a finite number >= 0")
+    if value is None or not 0 <= value < MAX_WIND:
+        raise ConfigError(
+            f"{key}={value!r} must be a number >= 0 and < {MAX_WIND:g} (the corridor's side: a "
+            "stronger wind crosses the whole arena in one step)"
+        )
+
+
+GYM_KEYS = ("id", "features", "configs", "probs", "projection")
+
+
+def _check_world_keys(env: DictConfig) -> None:
+    """A 2-D world takes none of a Gymnasium world's keys: setting one means nothing there."""
+    if env.name == "gym":
+        return
+    given = [k for k in GYM_KEYS if env.get(k) is not None]
+    if env.get("workers"):
+        given.append("workers")
+    if given:
+        raise ConfigError(
+            f"{', '.join(f'env.{k}={env.get(k)!r}' for k in given)}: {env.name} takes no "
+            f"{'such keys' if len(given) > 1 else 'such key'} (they are for env=gym and its "
+            "presets)"
+        )
 
 
 def _check_env_wind(cfg: DictConfig) -> None:
@@ -327,8 +353,9 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(
             f"checkpoint.keep_every={cfg.checkpoint.keep_every!r} must be a whole number >= 0"
         )
-    if cfg.epochs < 0:
-        raise ConfigError(f"epochs={cfg.epochs!r} must be >= 0")
+    if cfg.epochs < 1:
+        raise ConfigError(f"epochs={cfg.epochs!r} must be a whole number >= 1")
+    _check_world_keys(cfg.env)
     if cfg.seeds is not None and len(set(cfg.seeds)) != len(cfg.seeds):
         raise ConfigError(f"seeds={list(cfg.seeds)} holds a seed twice")
     validate_policy(cfg.policy)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import datetime
+import errno
 import hashlib
 import io
 import json
@@ -51,7 +52,7 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from hmepol_cli.errors import Interrupted, RunDirError
+from hmepol_cli.errors import Interrupted, RunDirError, StorageError
 
 CONFIG = "config.yaml"
 RUN_INFO = "run.json"
@@ -101,10 +102,20 @@ def _umask() -> int:
     return mask
 
 
+FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``path`` whole or not at all (a temporary file renamed into place); a full disk or
+    quota is a StorageError naming the path, and the old file stays as it was."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_SUFFIX)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(
+            dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_SUFFIX
+        )
+    except OSError as error:
+        raise _storage_error(path, error) from None
     try:
         os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600: give what a new file gets
         with os.fdopen(fd, "wb") as f:
@@ -112,9 +123,16 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as error:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(error, OSError) and error.errno in (*FULL, errno.EROFS, errno.EACCES):
+            raise _storage_error(path, error) from None
         raise
+
+
+def _storage_error(path: Path, error: OSError) -> StorageError:
+    reason = "no space left on the device" if error.errno in FULL else error.strerror
+    return StorageError(f"cannot write {path}: {reason} ({errno.errorcode.get(error.errno, '')})")
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -427,6 +445,18 @@ class RunLock:
         )
         self.path.unlink(missing_ok=True)
 
+    def holder(self) -> dict[str, Any] | None:
+        """Who writes the directory now: the lock's record, when a live process on this host
+        (or any process on another host) holds it; None when nobody does."""
+        try:
+            holder = json.loads(self.path.read_text())
+            pid, host = int(holder["pid"]), str(holder["host"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        if host == socket.gethostname() and not _process_alive(pid):
+            return None
+        return holder
+
     def release(self) -> None:
         if not self.held:
             return
@@ -708,12 +738,15 @@ def writing(
         stopped = isinstance(error, Interrupted | KeyboardInterrupt)
         reason = f"{type(error).__name__}: {error}".splitlines()[0][:300]
         for directory in opened:
-            if directory.info().get("status") != "running":
-                continue
-            if stopped:
-                directory.interrupt(getattr(error, "name", "SIGINT"))
-            else:
-                directory.fail(reason, last=last(directory))
+            try:
+                if directory.info().get("status") != "running":
+                    continue
+                if stopped:
+                    directory.interrupt(getattr(error, "name", "SIGINT"))
+                else:
+                    directory.fail(reason, last=last(directory))
+            except (StorageError, RunDirError, OSError):  # a full disk: nothing more to record
+                pass
         raise
     finally:
         for directory in opened:

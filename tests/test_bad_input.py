@@ -51,6 +51,26 @@ TRAIN = [
     (["env=mountaincar", "env.probs=[1,2]"], "env.probs=[1.0, 2.0] must hold 1 finite number"),
     (["env=gym", "env.id=Pendulum-v1", "env.configs=[{gravity:5}]"], "env.configs[0]"),
     (["env=gym", f"env.id={WALK_ID}", "env.configs=[{},{dim:3}]"], "env.configs[1]"),
+    # issue 24: Hydra's own messages, with what is allowed
+    (["policy=nosuch"], "choose one of: gru, lstm, markov, recursive, twohead"),
+    (["algo.lrr=1e-3"], "did you mean algo.lr"),
+    (["lrr=1e-3"], "did you mean algo.lr"),
+    (["seed=abc"], "seed takes a whole number"),
+    (["algo.lr=fast"], "algo.lr takes a number"),
+    (["policy.hidden=3"], "policy.hidden takes a list of whole numbers"),
+    (["hydra/launcher=nosuch"], "choose one of: basic,"),
+    # issue 24: values that mean nothing
+    (["epochs=0"], "epochs=0 must be a whole number >= 1"),
+    (["env.probs=[0.5,0.5]"], "slope takes no such key"),
+    (["env=corridor", "env.workers=2"], "corridor takes no such key"),
+    (["wind=1e308"], "must be a number >= 0 and < 12"),
+    (["env=corridor", "env.wind=0.1"], "set the corridor's wind with wind=0.1"),
+    (
+        ["env=gym", f"env.id={WALK_ID}", "env.configs=[{},{}]", "env.probs=[0.5,0.6]"],
+        "sum to 1.1: p_M must sum to 1",
+    ),
+    (["precision=tf32"], "precision='tf32' is a GPU precision"),
+    (["chunk_members=-1"], "chunk_members=-1"),
 ]
 
 

@@ -269,3 +269,114 @@ def test_a_damaged_run_json_is_rewritten_by_the_run_that_continues(tmp_path, rec
     assert list(resume().epoch) == [0, 1, 2, 3, 4]
     assert read_json(run / "run.json")["status"] == "finished"
     assert any("rewriting it" in str(w.message) for w in recwarn)
+
+
+# ------------------------------------------------------------------ a full disk
+def test_a_full_disk_is_one_line_naming_the_path_and_the_run_continues_after(
+    tmp_path, monkeypatch, capsys
+):
+    """The disk fills during epoch 1: the command says which file could not be written and
+    what was kept, in one line; with space again the same command finishes, exactly."""
+    import errno
+
+    from hmepol_cli.cli import main
+    from tests.test_cli import TINY
+
+    args = ["train", *TINY, "epochs=4", f"hydra.run.dir={tmp_path / 'run'}"]
+    real_fsync = os.fsync
+
+    def filling(fd):
+        if (tmp_path / "run" / "epochs.csv").exists() and len(
+            pd.read_csv(tmp_path / "run" / "epochs.csv")
+        ) >= 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", filling)
+    with pytest.raises(SystemExit) as stopped:
+        main(args)
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert stopped.value.code == 1 and "Traceback" not in err
+    assert len(lines) == 1 and "no space left on the device" in lines[0]
+    # epochs.csv had its second row when batches.csv could not be written: one epoch kept
+    assert "kept" in lines[0] and "up to epoch 1" in lines[0], lines
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    main(args)  # space again: the same command continues
+    assert list(pd.read_csv(tmp_path / "run" / "epochs.csv").epoch) == [0, 1, 2, 3]
+
+
+# ------------------------------------------------------------------ resume and populations
+def test_giving_a_run_the_value_it_already_has_is_no_change(tmp_path, capsys):
+    from hmepol_cli.cli import main
+    from tests.test_cli import TINY
+
+    run = tmp_path / "run"
+    main(["train", *TINY, "epochs=1", f"hydra.run.dir={run}"])
+    main(["train", f"resume={run}", "epochs=2", "algo.lr=1e-3"])  # the run's own lr
+    with pytest.raises(SystemExit) as other:
+        main(["train", f"resume={run}", "epochs=3", "algo.lr=2e-3"])
+    assert other.value.code == 2 and "algo.lr=2e-3 cannot change" in capsys.readouterr().err
+
+
+def test_a_population_resumed_with_a_member_behind_equals_an_uninterrupted_one(tmp_path):
+    """Member 1's checkpoint is one epoch older than member 0's (a kill between the two
+    saves): resumed, the population ends with every member's files equal to an uninterrupted
+    population's, bit for bit."""
+    import shutil
+
+    cfgs = [compose_cfg("epochs=3", f"seed={s}", "checkpoint.keep_every=1") for s in (0, 1)]
+    plain = Trainer(cfgs, [tmp_path / "plain" / f"seed{s}" for s in (0, 1)])
+    plain.train()
+    broken = [tmp_path / "broken" / f"seed{s}" for s in (0, 1)]
+    Trainer([c.copy() for c in cfgs], broken).train()
+    for d in broken:  # back to epoch 2 for member 0, epoch 1 for member 1, as if killed
+        info = read_json(d / RUN_INFO)
+        info["status"] = "running"
+        (d / RUN_INFO).write_text(json.dumps(info))
+    shutil.copy(broken[0] / "checkpoints" / "epoch_0002.pt", broken[0] / CHECKPOINT)
+    shutil.copy(broken[1] / "checkpoints" / "epoch_0001.pt", broken[1] / CHECKPOINT)
+    Trainer([c.copy() for c in cfgs], broken).train(resume=True)
+    drop = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time"]
+    for s, d in enumerate(broken):
+        for name in ("epochs.csv", "batches.csv"):
+            a = pd.read_csv(tmp_path / "plain" / f"seed{s}" / name)
+            b = pd.read_csv(d / name)
+            pd.testing.assert_frame_equal(
+                a.drop(columns=drop, errors="ignore"), b.drop(columns=drop, errors="ignore"),
+                check_exact=True,
+            )  # fmt: skip
+        final = torch.load(d / CHECKPOINT, weights_only=True)["policy"]
+        reference = torch.load(tmp_path / "plain" / f"seed{s}" / CHECKPOINT, weights_only=True)
+        assert all(torch.equal(final[k], reference["policy"][k]) for k in final)
+
+
+# ------------------------------------------------------------------ fine-tuning a running run
+def test_fine_tuning_refuses_a_run_that_is_still_being_trained(tmp_path):
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    from hmepol_cli.errors import ConfigError
+    from hmepol_cli.finetune import check_finetune
+
+    run = tmp_path / "run"
+    Trainer(compose_cfg("epochs=2", "checkpoint.keep_every=1"), run).train()
+    holder = subprocess.Popen(["sleep", "300"])
+    try:
+        lock = {"pid": holder.pid, "host": socket.gethostname(), "started": "now"}
+        (run / LOCK).write_text(json.dumps(lock))
+
+        def plan(*extra):
+            GlobalHydra.instance().clear()
+            with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
+                cfg = compose(config_name="finetune", overrides=[*extra, "targets=1", "config=0"])
+            GlobalHydra.instance().clear()
+            return check_finetune(cfg)
+
+        with pytest.raises(ConfigError, match=f"still being trained \\(pid {holder.pid}"):
+            plan(f"init={run}")
+        assert plan(f"init={run}@1").init_epoch == 1  # a kept checkpoint: it cannot change
+        assert plan(f"init={run}", "allow_running=true").init_epoch == 2
+    finally:
+        holder.kill()
+        holder.wait()

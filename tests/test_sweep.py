@@ -8,6 +8,7 @@ import json
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -66,6 +67,26 @@ def test_a_sweep_with_a_bad_value_is_refused_before_anything_is_written(tmp_path
 
 
 @pytest.mark.slow
+def test_two_identical_sweeps_into_one_folder_the_second_is_refused_in_a_table(tmp_path):
+    by_seed = "hydra.sweep.subdir=seed${seed}"
+    first = subprocess.Popen(
+        [sys.executable, "-m", "hmepol_cli.cli", "sweep", *TINY, "epochs=300", "seed=0",
+         by_seed, f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        while not (tmp_path / "sweep" / "seed0" / "epochs.csv").exists():
+            assert first.poll() is None, first.communicate()
+            time.sleep(0.1)
+        second = sweep(tmp_path, "seed=0", by_seed, "epochs=300")
+        assert second.returncode == 1 and "Traceback" not in second.stderr, second.stderr
+        assert "1 of 1 jobs failed" in second.stderr and "is being written by pid" in second.stderr
+    finally:
+        first.kill()
+        first.wait()
+
+
+@pytest.mark.slow
 def test_a_failed_job_does_not_stop_the_others_and_the_sweep_says_so(tmp_path):
     """One job's directory is held by another live process: that job fails, the other runs,
     the sweep exits 1 with a table of the failed job, and a re-run retries it."""
@@ -79,6 +100,7 @@ def test_a_failed_job_does_not_stop_the_others_and_the_sweep_says_so(tmp_path):
         first = sweep(tmp_path, "seed=0,1", by_seed)
         assert first.returncode == 1, first.stderr[-2000:]
         assert "1 of 2 jobs failed" in first.stderr and f"pid {holder.pid}" in first.stderr
+        assert "Traceback" not in first.stderr  # the table, and no Hydra traceback
         assert len(pd.read_csv(seed1 / "epochs.csv")) == 1  # the other job went on
         assert sorted(p.name for p in seed0.iterdir()) == [".lock"]  # the held one: untouched
     finally:

@@ -450,7 +450,11 @@ def _check_probs(probs: Sequence[float] | None, n: int) -> tuple[float, ...]:
             f"per configuration of env.configs, not all 0"
         )
     total = float(sum(values))
-    return tuple(float(p) / total for p in values)
+    if abs(total - 1.0) > 1e-6:
+        raise ConfigError(
+            f"env.probs={values!r} sum to {total:g}: p_M must sum to 1 (nothing is renormalised)"
+        )
+    return tuple(float(p) for p in values)
 
 
 def _check_indices(key: str, indices: Sequence[int] | None, dim: int) -> tuple[int, ...]:

@@ -47,8 +47,10 @@ from hmepol_cli.rundir import (
     FINETUNE_CSV,
     TARGETS_JSON,
     RunDirectory,
+    RunLock,
     RunTables,
     load_trained_policy,
+    resolve_checkpoint,
     write_json,
     writing,
 )
@@ -145,6 +147,15 @@ def initial_policy(cfg: DictConfig, device: torch.device) -> Start:
         raise ConfigError(
             f"init={str(cfg.init)!r} does not exist; give a run directory, checkpoint file, "
             "<run dir>@<epochs> or none"
+        )
+    run_dir = Path(text.rpartition("@")[0] if "@" in text else text)
+    run_dir = run_dir if run_dir.is_dir() else resolve_checkpoint(run_dir)[0]
+    holder = RunLock(run_dir).holder()
+    if holder is not None and "@" not in text and not cfg.get("allow_running", False):
+        raise ConfigError(
+            f"init={str(cfg.init)!r} is still being trained (pid {holder['pid']} on "
+            f"{holder['host']} since {holder.get('started', '?')}): wait for it, start from a "
+            f"kept checkpoint (init={run_dir}@<epochs>), or give allow_running=true"
         )
     policy, run_cfg, epochs = load_trained_policy(text, device=device)
     run_env = OmegaConf.to_container(run_cfg.env, resolve=True) if "env" in run_cfg else {}
