@@ -73,11 +73,13 @@ def knn_entropy_by_hand(points: np.ndarray, k: int) -> float:
 
 # ------------------------------------------------------------------ the world
 def test_the_gym_world_reads_spaces_configurations_and_probabilities():
-    world = walk_world(configs=[{"drift": 0.0}, {"drift": 0.1}], probs=[3, 1], features=[0])
+    world = walk_world(configs=[{"drift": 0.0}, {"drift": 0.1}], probs=[0.75, 0.25], features=[0])
     assert ENVIRONMENTS["gym"] is GymWorld
     assert (world.state_dim, world.action_dim) == (2, 1)
     assert world.configuration_names == ("drift=0.0", "drift=0.1")
-    assert world.configuration_probs == (0.75, 0.25)  # normalised
+    assert world.configuration_probs == (0.75, 0.25)
+    with pytest.raises(ConfigError, match="sum to 4"):  # never renormalised behind one's back
+        walk_world(configs=[{"drift": 0.0}, {"drift": 0.1}], probs=[3, 1])
     assert world.features == (0,) and world.projection == (0, 0)
     assert math.isnan(world.free_area(0))
     draws = world.sample_configurations(4000, torch.Generator().manual_seed(0))
