@@ -11,7 +11,7 @@ DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_frac
 
 install:
 	$(PYTHON) -m pip install --quiet "$(TORCH_SPEC)"
-	$(PYTHON) -m pip install --quiet -e ".[dev,mujoco]"
+	$(PYTHON) -m pip install --quiet -e ".[dev,mujoco,tracking]"
 
 # Trains Mepol and HMepol on a small slope world, fine-tunes both on a goal, and writes the report.
 demo: install

@@ -109,6 +109,29 @@ class AlarmConfig:
 
 
 @dataclass
+class WandbConfig:
+    project: str = "hmepol"
+    entity: str | None = None
+    mode: str = "auto"  # auto (online with a key, offline without) | online | offline | disabled
+
+
+@dataclass
+class MlflowConfig:
+    tracking_uri: str | None = None  # null: sqlite:///<cwd>/outputs/mlflow.db
+    experiment: str = "hmepol"
+
+
+@dataclass
+class LoggerConfig:
+    """The ``logger`` group, several at once (logger=[csv,tensorboard]); csv is always on."""
+
+    csv: dict[str, Any] | None = None
+    tensorboard: dict[str, Any] | None = None
+    wandb: WandbConfig | None = None
+    mlflow: MlflowConfig | None = None
+
+
+@dataclass
 class CheckpointConfig:
     # Keep checkpoints/epoch_<n>.pt every keep_every epochs besides last.pt (0: only last.pt);
     # fine-tuning starts from one with init=<run dir>@<n>.
@@ -124,6 +147,7 @@ class Config:
     eval: EvalConfig = field(default_factory=EvalConfig)
     alarms: AlarmConfig = field(default_factory=AlarmConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
     # steps.csv (every off-policy step: lr, accepted, one-step and exact KL, IW entropy) and
     # epochs.csv's kl_exact; the exact KL costs one full-history pass per step (recursive).
     diagnostics: bool = False
@@ -356,6 +380,12 @@ def validate(cfg: DictConfig) -> None:
     if cfg.epochs < 1:
         raise ConfigError(f"epochs={cfg.epochs!r} must be a whole number >= 1")
     _check_world_keys(cfg.env)
+    from hmepol_cli.tracking import check_loggers
+
+    check_loggers(cfg)
+    wandb = (cfg.get("logger") or {}).get("wandb")
+    if wandb is not None:
+        _one_of("logger.wandb.mode", wandb.mode, ("auto", "online", "offline", "disabled"))
     if cfg.seeds is not None and len(set(cfg.seeds)) != len(cfg.seeds):
         raise ConfigError(f"seeds={list(cfg.seeds)} holds a seed twice")
     validate_policy(cfg.policy)

@@ -92,6 +92,7 @@ RESUMABLE_KEYS = (
     "env.workers",  # a Gymnasium world's processes: the same episodes with any count
     "diagnostics",  # what is recorded, not what is computed
     "checkpoint",
+    "logger",
 )
 
 

@@ -41,6 +41,7 @@ from hmepol_cli.rundir import (
     RunDirectory,
     RunTables,
     epoch_checkpoint,
+    flat_config,
     load_checkpoint,
     save_checkpoint,
     training_tables,
@@ -52,6 +53,7 @@ from hmepol_cli.seeding import (
     make_generator,
     set_random_seed,
 )
+from hmepol_cli.tracking import MemberTracking, population_group, scalars_of
 
 log = logging.getLogger("hmepol")
 
@@ -68,6 +70,7 @@ class Member:
     start_epoch: int = 0
     failure: str | None = None  # why it stopped, when its numbers stopped making sense
     stalled_for: int = 0  # consecutive epochs in which no off-policy step was accepted
+    tracking: MemberTracking | None = None  # TensorBoard, W&B, MLflow (logger=[...])
 
 
 class Trainer:
@@ -101,9 +104,10 @@ class Trainer:
         self.population = PolicyPopulation(policies, vectorize).to(self.device, self.dtype)
         self.optimizer = PopulationAdam(self.population.params)
         self.members = [
-            Member(c, Path(d), make_generator(self.device, c.seed), RunDirectory(Path(d), c))
+            Member(c, Path(d), make_generator(self.device, c.seed), RunDirectory(Path(d), c),
+                   tracking=MemberTracking(c, Path(d)))
             for c, d in zip(cfgs, run_dirs, strict=True)
-        ]
+        ]  # fmt: skip
         self.settings = OffPolicySettings.from_config(cfg, self.population.history_size, cfgs)
         # Captured rollouts (CUDA graphs), one per shape: on a GPU the step loop's ~100 small
         # kernels a step cost more in launches than in work.
@@ -195,6 +199,7 @@ class Trainer:
                     for s in self.restore():
                         member = self.members[s]
                         print(f"hmepol: resuming {member.run_dir} at epoch {member.start_epoch}")
+                self.start_tracking()
                 self._epochs()
                 survivors = [m for m in self.members if m.failure is None]
                 if survivors:
@@ -205,8 +210,30 @@ class Trainer:
             self.close()
         return [m.run_dir for m in self.members]
 
+    def start_tracking(self) -> None:
+        """Open each member's tracking runs (continuing the ones its run.json names) and log
+        the epochs its CSV holds that a crash kept from them."""
+        group = population_group([m.run_dir for m in self.members])
+        names = list(self.world.configuration_names)
+        for member in self.members:
+            if not member.tracking.trackers:
+                continue
+            info = member.directory.info()
+            logged = int(info.get("logged_through", -1))
+            provenance = info.get("provenance", {})
+            tags = {k: provenance.get(k) for k in ("hmepol", "git_commit", "host", "device")}
+            params = {k: v for k, v in flat_config(member.cfg).items() if v is not None}
+            state = member.tracking.start(
+                member.run_dir.name, group, params, tags, info.get("tracking", {}), logged
+            )
+            member.tracking.catch_up(member.log["epochs.csv"].to_dict("records"), logged, names)
+            member.directory.update(tracking=state, logged_through=member.start_epoch - 1)
+
     def close(self) -> None:
-        """Release what the world holds (a Gymnasium world's environments and processes)."""
+        """Close the tracking runs; release what the world holds (a Gymnasium world's
+        environments and processes)."""
+        for member in self.members:
+            member.tracking.close()
         self.world.close()
 
     @property
@@ -250,7 +277,7 @@ class Trainer:
             )
             done = epoch + 1
             if cfg.eval.every and done % cfg.eval.every == 0 and done < cfg.epochs:
-                self.save_evaluation(f"epoch_{done:04d}")
+                self.save_evaluation(f"epoch_{done:04d}", epoch)
         bar.close()
 
     def _record(self, s: int, epoch: int, stats: EpochStats) -> str | None:
@@ -270,7 +297,8 @@ class Trainer:
         epochs, batches, steps = _epoch_rows(epoch, stats, diverged, self.world.n_configurations)
         member.log.append(epochs=pd.DataFrame([epochs]), batches=batches, steps=steps)
         self.save(s, epoch + 1)
-        member.directory.update(epochs_done=epoch + 1)
+        member.tracking.scalars(epoch, scalars_of(epochs, self.world.configuration_names))
+        member.directory.update(epochs_done=epoch + 1, logged_through=epoch)
         if diverged:
             self._warn_divergence(s, epoch, stats)
         drift = _precision_drift(stats)
@@ -340,15 +368,16 @@ class Trainer:
         return self._fitting
 
     # ------------------------------------------------------------------ evaluation
-    def save_evaluation(self, name: str) -> list[Path]:
-        """Fresh rollouts of every member's policy in every configuration, saved to eval/."""
+    def save_evaluation(self, name: str, epoch: int | None = None) -> list[Path]:
+        """Fresh rollouts of every member's policy in every configuration, saved to eval/ (and
+        their heatmaps to the trackers, at ``epoch``)."""
         e = self.cfg.eval
         # Generators of their own, so evaluation never shifts the training streams (exact resume).
         generators = [
             make_generator(self.device, zlib.crc32(f"{m.cfg.seed}/{name}".encode()))
             for m in self.members
         ]
-        return evaluate_and_save(
+        paths = evaluate_and_save(
             self.world,
             self.population,
             [m.run_dir / EVAL_DIR for m in self.members],
@@ -359,6 +388,10 @@ class Trainer:
             plot_trajectories=e.plot_trajectories,
             plot_every=e.plot_every,
         )
+        step = self.cfg.epochs - 1 if epoch is None else epoch
+        for member in self.members:
+            member.tracking.image(step, "heatmap", member.run_dir / EVAL_DIR / name / "heatmap.png")
+        return paths
 
     def _warn_divergence(self, s: int, epoch: int, stats: EpochStats) -> None:
         alarms = self.cfg.alarms

@@ -202,7 +202,8 @@ def test_one_configuration_per_mini_batch_and_each_runs_its_own_environment(tmp_
     configuration, drawn per member from p_M, and they move by their configuration's drift."""
     trainer = Trainer(
         compose_cfg(*WALK, "algo.trajectories=40",
-                    "env.configs=[{drift:0.0},{drift:0.2},{drift:-0.2}]", "env.probs=[0.5,0.25,0.25]"),
+                    "env.configs=[{drift:0.0},{drift:0.2},{drift:-0.2}]",
+                    "env.probs=[0.5,0.25,0.25]"),
         tmp_path / "run",
     )  # fmt: skip
     g = trainer.members[0].generator

@@ -59,12 +59,13 @@ RUN_SPECIFIC_KEYS = {
     "eval.every",
     "env.workers",  # processes stepping a Gymnasium world: the same numbers with any count
     "diagnostics",  # what is recorded, not what is computed
+    "logger",
     "checkpoint.keep_every",
     # The effective wind is read once (run.json) and stored under the synthetic key "wind".
     "wind",
     "env.wind",
 }
-RUN_SPECIFIC_PREFIXES = ("hydra",)
+RUN_SPECIFIC_PREFIXES = ("hydra", "logger.", "checkpoint.")
 
 # Short names of the keys that usually vary, for labels and table columns.
 SHORT_NAMES = {
