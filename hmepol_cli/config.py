@@ -92,8 +92,7 @@ class EvalConfig:
     every: int = 0  # epochs between evaluations during training (0: only at the end)
     trajectories: int = 100  # heatmap trajectories per configuration
     horizon: int = 400
-    plot_trajectories: int = 10
-    plot_every: int = 10  # a point every this many steps on trajectory plots
+    plot_trajectories: int = 5  # lines on each trajectory panel
 
 
 @dataclass

@@ -49,8 +49,7 @@ def evaluate_and_save(
     trajectories: int,
     horizon: int,
     generators: Sequence[torch.Generator],
-    plot_trajectories: int = 10,
-    plot_every: int = 10,
+    plot_trajectories: int = 5,
 ) -> list[Path]:
     """Roll out every member; save ``<out_dirs[s]>/<name>.npz`` and its heatmap and trajectory
     PNGs. -> the .npz paths"""
@@ -59,6 +58,6 @@ def evaluate_and_save(
     for out_dir, member_positions in zip(out_dirs, positions, strict=True):
         path = Path(out_dir) / f"{name}.npz"
         save_positions(path, member_positions)
-        save_run_plots(world, member_positions, Path(out_dir) / name, plot_trajectories, plot_every)
+        save_run_plots(world, member_positions, Path(out_dir) / name, plot_trajectories)
         paths.append(path)
     return paths

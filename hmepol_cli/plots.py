@@ -11,9 +11,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from matplotlib import colormaps
-from matplotlib.colors import to_rgb
+from matplotlib.collections import LineCollection
+from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
 from hmepol_cli.envs.render import draw_world
@@ -22,6 +23,9 @@ OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#ff7f0e
 LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1)), (0, (5, 2, 1, 2)))
 BOUND_COLOUR = "0.25"  # the log(free area) line
 HEATMAP_CMAP = "viridis"
+TIME_CMAP = "plasma"  # a trajectory's colour by step: dark purple at the start, yellow at the end
+START_OUTLINE = "#d62728"  # the start area's outline on heatmaps
+TRAJECTORIES = 5  # trajectories per panel: more lines of one colour map cannot be followed
 DPI = 110
 
 
@@ -69,6 +73,27 @@ def draw_walls(ax, world, config: int) -> None:
     if not has_map(world):
         return
     draw_world(ax, world, config, force=False, start=False, zorder=3)
+
+
+def outline_start(ax, world) -> None:
+    """The start area as a dashed outline above the data and the walls."""
+    if not has_map(world):
+        return
+    s = world.start
+    # A white rim under the dashes keeps the outline visible on any colour of the heatmap.
+    for colour, width, dashes in (("white", 2.6, "-"), (START_OUTLINE, 1.4, (0, (3, 2)))):
+        ax.add_patch(
+            Rectangle(
+                (s.x0, s.y0),
+                s.x1 - s.x0,
+                s.y1 - s.y0,
+                facecolor="none",
+                edgecolor=colour,
+                linestyle=dashes,
+                linewidth=width,
+                zorder=4,
+            )
+        )
 
 
 def _map_axes(
@@ -177,6 +202,7 @@ def heatmap_grid(
                     zorder=2,
                 )
             draw_walls(ax, world, c)
+            outline_start(ax, world)
     if image is not None:
         cax = bar_fig.add_axes((0.15, 0.1, 0.18, 0.8))
         bar = bar_fig.colorbar(image, cax=cax)
@@ -184,26 +210,28 @@ def heatmap_grid(
 
 
 # --------------------------------------------------------------------------------- trajectories
-def draw_trajectories(
-    ax, positions: np.ndarray, n_trajectories: int = 10, every: int = 10, markersize: float = 7
-) -> None:
-    """A point every ``every`` steps of the first trajectories, lighter early, darker late.
+def draw_trajectories(ax, positions: np.ndarray, n_trajectories: int = TRAJECTORIES):
+    """The first trajectories as lines through every step, coloured by the step (TIME_CMAP); a
+    white circle marks each start, a black square each end. Returns the line collections' colour
+    mapping, for a colour bar.
 
-    Points only: a line between points 10 steps apart would cut through walls.
-
-    positions (n_traj, T+1, 2). One hue per trajectory; each point is the hue blended with white,
-    from 80% white at the first step to the full hue at the last.
+    positions (n_traj, T+1, 2). Every step is drawn, so no segment crosses a wall (one step is
+    shorter than any wall is thick).
     """
-    palette = colormaps["tab10"].colors
-    for i, traj in enumerate(positions[:n_trajectories]):
-        points = traj[::every]
-        base = np.array(to_rgb(palette[i % len(palette)]))
-        strength = np.linspace(0.2, 1.0, len(points))[:, None]
-        colours = 1.0 - strength * (1.0 - base)
-        # Not clipped: a point on the arena's edge is drawn whole.
-        ax.scatter(
-            points[:, 0], points[:, 1], c=colours, s=markersize, lw=0, zorder=5, clip_on=False
+    steps = positions.shape[1] - 1
+    norm = Normalize(0, max(steps, 1))
+    lines = None
+    for traj in positions[:n_trajectories]:
+        segments = np.stack([traj[:-1], traj[1:]], axis=1)
+        lines = LineCollection(
+            segments, cmap=TIME_CMAP, norm=norm, linewidths=0.9, zorder=5, clip_on=False
         )
+        lines.set_array(np.arange(steps))
+        ax.add_collection(lines)
+        marks = {"zorder": 6, "clip_on": False, "markersize": 4.5}
+        ax.plot(*traj[0], "o", mfc="white", mec="black", mew=0.8, **marks)
+        ax.plot(*traj[-1], "s", mfc="black", mec="white", mew=0.5, **marks)
+    return lines
 
 
 def trajectory_grid(
@@ -211,17 +239,19 @@ def trajectory_grid(
     world,
     rows: Sequence[tuple[str, dict[int, np.ndarray]]],
     configuration_names: Sequence[str],
-    n_trajectories: int = 10,
-    every: int = 10,
+    n_trajectories: int = TRAJECTORIES,
     max_cols: int = 5,
 ) -> None:
-    """Trajectory panels: one block per row (a seed, a run), one panel per configuration."""
+    """Trajectory panels: one block per row (a seed, a run), one panel per configuration, and
+    one colour bar for the step."""
     n_configurations = len(configuration_names)
     cols = min(n_configurations, max_cols)
     rows_per_block = math.ceil(n_configurations / cols)
     some = next((p for _, by_c in rows for p in by_c.values()), None)
     extent = world_extent(world, some)
-    grids = _blocks(fig, len(rows), rows_per_block, cols, [label for label, _ in rows])
+    panels, bar_fig = fig.subfigures(1, 2, width_ratios=[cols * 2.5, 1.0])
+    grids = _blocks(panels, len(rows), rows_per_block, cols, [label for label, _ in rows])
+    lines = None
     for axes, (_, by_config) in zip(grids, rows, strict=True):
         for c in range(rows_per_block * cols):
             ax = axes[c // cols, c % cols]
@@ -231,7 +261,10 @@ def trajectory_grid(
             _map_axes(ax, extent, f"config {c}: {configuration_names[c]}", has_map(world))
             draw_walls(ax, world, c)
             if c in by_config:
-                draw_trajectories(ax, by_config[c], n_trajectories, every)
+                lines = draw_trajectories(ax, by_config[c], n_trajectories) or lines
+    if lines is not None:
+        cax = bar_fig.add_axes((0.15, 0.1, 0.18, 0.8))
+        bar_fig.colorbar(lines, cax=cax).set_label("step (circle: start, square: end)")
 
 
 # ----------------------------------------------------------------------------- one run (trainer)
@@ -239,8 +272,7 @@ def save_run_plots(
     world,
     positions_by_config: dict[int, np.ndarray],
     out_dir: Path,
-    n_trajectories: int = 10,
-    every: int = 10,
+    n_trajectories: int = TRAJECTORIES,
 ) -> list[Path]:
     """Write ``heatmap.png`` and ``trajectories.png`` of one evaluation of one run into out_dir.
 
@@ -266,16 +298,17 @@ def save_run_plots(
     heatmap_grid(fig, world, [("", positions_by_config)], names)
     fig.suptitle(
         f"{world_name}: log probability of state visitation\n"
-        f"{n_traj} trajectories of T={steps} steps per configuration{axes}",
+        f"{n_traj} trajectories of T={steps} steps per configuration"
+        f"{'' if projection is not None else ', dashed: start area'}{axes}",
         **({} if projection is None else {"fontsize": 9}),
     )
     heatmap = save(fig, out_dir / "heatmap.png")
 
-    fig = new_figure(2.6 * cols, 2.6 * rows + 0.6)
-    trajectory_grid(fig, world, [("", positions_by_config)], names, n_trajectories, every)
+    fig = new_figure(2.6 * cols + 1.0, 2.6 * rows + 0.6)
+    trajectory_grid(fig, world, [("", positions_by_config)], names, n_trajectories)
     fig.suptitle(
-        f"{world_name}: {min(n_trajectories, n_traj)} trajectories per configuration\n"
-        f"a point every {every} steps, lighter = earlier{axes}",
+        f"{world_name}: {min(n_trajectories, n_traj)} trajectories of T={steps} steps per "
+        f"configuration\ncolour: step{axes}",
         fontsize=10,
     )
     trajectories = save(fig, out_dir / "trajectories.png")

@@ -82,6 +82,8 @@ RESUMABLE_KEYS = (
     "progress",
     "threads",
     "eval.every",
+    "eval.plot_trajectories",  # how the pictures are drawn
+    "eval.plot_every",  # a key of runs made before trajectories were lines
     "vmap",
     "cuda_graphs",
     "resume",

@@ -370,6 +370,7 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
             "slope_entropy_epochs.png",
             "slope_entropy_epochs_by_config.png",
             "slope_final_entropy_bars.png",
+            "slope_aggregates.png",
             "slope_heatmaps.png",
             "slope_trajectories_mepol.png",
             "slope_trajectories_alpha-mepol.png",
@@ -467,13 +468,14 @@ def test_counts_on_stdout_and_in_the_page_are_the_runs_actually_used(tmp_path, c
         warnings.simplefilter("ignore", SkippedRunWarning)
         index = run_report(root, tmp_path / "report")
     # 4 pre-training seeds + 2 fine-tuning runs; 2 groups; the copy and the unfinished run
-    # skipped; curves, curves per configuration, bars, heatmaps, 2 x trajectories, fine-tuning.
-    expected = "6 runs used (2 groups), 2 skipped, 7 figures"
+    # skipped; curves, curves per configuration, bars, aggregates, heatmaps, 2 x trajectories,
+    # fine-tuning.
+    expected = "6 runs used (2 groups), 2 skipped, 8 figures"
     assert capsys.readouterr().out == f"report: {expected} -> {index}\n"
     page = index.read_text()
     assert expected in page
     assert "(4 pre-training runs in 2 groups, 2 fine-tuning runs)" in page
-    assert page.count("<figure>") == 7 == len(list((tmp_path / "report" / "figures").iterdir()))
+    assert page.count("<figure>") == 8 == len(list((tmp_path / "report" / "figures").iterdir()))
     assert re.findall(r"<li><code>([^<]*)</code>", page) == ["hmepol-seed1-copy", "unfinished"]
 
 
@@ -493,6 +495,7 @@ def test_a_new_report_replaces_the_files_of_the_earlier_one_and_nothing_else(tmp
         "figures/slope_entropy_epochs.png",
         "figures/slope_entropy_epochs_by_config.png",
         "figures/slope_final_entropy_bars.png",
+        "figures/slope_aggregates.png",
         "figures/slope_heatmaps.png",
         "figures/slope_trajectories_mepol.png",
         "index.html",
@@ -671,3 +674,52 @@ def test_exported_runs_rebuild_the_same_summary(tmp_path):
     a = pd.read_csv(tmp_path / "report_a" / "summary.csv")
     b = pd.read_csv(tmp_path / "report_b" / "summary.csv")
     pd.testing.assert_frame_equal(a, b)
+
+
+def test_every_caption_states_its_scale_and_a_smoke_run_says_so(tmp_path):
+    small, large = tmp_path / "small", tmp_path / "large"
+    write_run(small, seed=0, epochs=15, n_traj=10, horizon=40)
+    write_finetune_run(small, algo_init="mepol", seed=0)
+    for seed in range(4):
+        write_run(large, seed=seed, epochs=120)
+    page = html.unescape(run_report(small, tmp_path / "a").read_text())
+    assert "Smoke scale, not a result" in page and "1 seed, 15 epochs" in page
+    captions = re.findall(r"<figcaption>(.*?)</figcaption>", page, flags=re.S)
+    assert captions and all("Scale: " in c for c in captions)
+    assert "Scale: 1 seed, 15 epochs of" in page
+    page = html.unescape(run_report(large, tmp_path / "b").read_text())
+    assert "Smoke scale" not in page
+    assert "Scale: 4 seeds, 120 epochs of" in page
+
+
+# ------------------------------------------------------------------------------- diagnostics
+def test_drops_and_the_kl_ratio_of_the_update_before_them_by_hand(tmp_path):
+    from hmepol_cli.report.diagnostics import diagnosed, drop_table
+
+    run = write_run(tmp_path, algo="hmepol", policy="recursive", seed=0, epochs=60)
+    epochs = pd.read_csv(run / "epochs.csv")
+    # Configuration 1 falls by 2.5 nats at epoch 40 and recovers; a fall at epoch 10 is too early
+    # to count (DROP_FROM = 30); configuration 0 falls by 0.9 at epoch 50: not a drop.
+    epochs.loc[epochs.epoch == 40, "entropy_c1"] -= 2.5
+    epochs.loc[epochs.epoch == 10, "entropy_c1"] -= 3.0
+    epochs.loc[epochs.epoch == 50, "entropy_c0"] -= 0.9
+    epochs.to_csv(run / "epochs.csv", index=False)
+    # Two steps an epoch, the second accepted: one-step KL 0.01, exact 0.02, except epoch 39's
+    # update (the one before the drop): exact 0.5, a ratio of 50.
+    rows = []
+    for e in range(60):
+        rows.append({"epoch": e, "step": 0, "accepted": False, "kl_one_step": 9.0, "kl_exact": 9.0})
+        exact = 0.5 if e == 39 else 0.02
+        rows.append(
+            {"epoch": e, "step": 1, "accepted": True, "kl_one_step": 0.01, "kl_exact": exact}
+        )
+    pd.DataFrame(rows).to_csv(run / "steps.csv", index=False)
+    write_run(tmp_path, algo="mepol", seed=0, epochs=60)  # no steps.csv: compared beside it
+    groups = group_runs(discover_runs(tmp_path)[0])
+    [hmepol] = [row for row in drop_table(diagnosed(groups)).to_dict("records") if row["drops"]]
+    assert hmepol["drop_epochs"] == "40"
+    # 40 is a drop of configuration 1 (2.5 nats less the ramp's step); its recovery at 41 is not.
+    assert hmepol["largest_fall"] == pytest.approx(2.5 - 0.9 / 59)
+    assert hmepol["kl_ratio_before_drops"] == pytest.approx(50.0)
+    assert hmepol["kl_ratio_other_updates"] == pytest.approx(2.0)
+    assert {g.label for g in diagnosed(groups)} == {"Mepol", "HMepol"}

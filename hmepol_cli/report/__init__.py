@@ -6,6 +6,7 @@ Data path: runs.py (find, load, group) -> stats.py (mean, t-intervals) -> figure
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from hmepol_cli.errors import UserError
@@ -22,8 +23,9 @@ from hmepol_cli.report.runs import (
 from hmepol_cli.report.summary import ReportCounts, write_summary
 
 
-def run_report(runs_root: Path, out_dir: Path) -> Path:
-    """Build the report of every finished run under ``runs_root`` into ``out_dir``.
+def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
+    """Build the report of every finished run under ``runs_roots`` (one folder or several)
+    into ``out_dir``.
 
     Writes ``out_dir/index.html``, ``out_dir/figures/*.png``, ``summary.csv``,
     ``differences.csv``, ``summary.md`` (and ``finetune.csv`` when there are fine-tuning runs),
@@ -32,13 +34,20 @@ def run_report(runs_root: Path, out_dir: Path) -> Path:
     non-empty ``out_dir`` without ``report.json`` is refused. Unusable runs are skipped with a
     warning and listed.
     """
-    runs_root, out_dir = Path(runs_root), Path(out_dir)
-    if not runs_root.is_dir():
-        raise UserError(f"runs root {str(runs_root)!r} does not exist or is not a directory")
+    roots = [runs_roots] if isinstance(runs_roots, str | Path) else list(runs_roots)
+    roots = [Path(r) for r in roots]
+    out_dir = Path(out_dir)
+    for root in roots:
+        if not root.is_dir():
+            raise UserError(f"runs root {str(root)!r} does not exist or is not a directory")
     previous = previous_report_files(out_dir)
-    runs, skipped = discover_runs(runs_root)
+    runs, skipped = [], []
+    for root in roots:
+        found, unusable = discover_runs(root)
+        runs, skipped = runs + found, skipped + unusable
     if not runs and not skipped:
-        raise UserError(f"no runs under {str(runs_root)!r} (no directory holds a run.json)")
+        where = ", ".join(repr(str(r)) for r in roots)
+        raise UserError(f"no runs under {where} (no directory holds a run.json)")
     runs, duplicates = drop_duplicate_seeds(runs)
     skipped = sorted(skipped + duplicates, key=lambda s: str(s.path))
     groups = group_runs(runs)
@@ -53,7 +62,9 @@ def run_report(runs_root: Path, out_dir: Path) -> Path:
         skipped=len(skipped),
         figures=len(figures),
     )
-    index = write_index(out_dir, runs_root, groups, skipped, figures, tables, table_files, counts)
+    index = write_index(
+        out_dir, roots, groups, finetune_runs, skipped, figures, tables, table_files, counts
+    )
     write_manifest(out_dir, [f.path for f in figures] + table_files + [index], previous)
     print(f"report: {counts.text()} -> {index}")
     return index

@@ -23,12 +23,15 @@ from hmepol_cli.algorithms import SCRATCH
 from hmepol_cli.plots import (
     BOUND_COLOUR,
     LINESTYLES,
+    TRAJECTORIES,
     algo_colour,
     heatmap_grid,
     new_figure,
     save,
     trajectory_grid,
 )
+from hmepol_cli.report.aggregate_figure import draw_aggregates
+from hmepol_cli.report.diagnostics import DROP_FROM, DROP_NATS, diagnosed, draw_diagnostics
 from hmepol_cli.report.runs import ALGO_ORDER, Group, Run, algo_label, format_wind
 from hmepol_cli.report.stats import curve_ci, mean_ci
 
@@ -155,6 +158,39 @@ def seeds_text(groups: list[Group]) -> str:
     return text
 
 
+def _pretraining_scale(group: Group) -> str:
+    """'4 seeds, 200 epochs of 100 trajectories x 400 steps' (epochs: the fewest any seed has)."""
+    config = group.first.config
+    epochs = min(len(r.epochs) for r in group.runs)
+    return (
+        f"{_seeds(len(group.runs))}, {epochs} epoch{'s' if epochs != 1 else ''} of "
+        f"{config.get('algo.trajectories', '?')} trajectories x {config.get('algo.horizon', '?')} "
+        "steps"
+    )
+
+
+def scale_text(groups: list[Group]) -> str:
+    """The caption's last sentence: the runs' scale, once when every group shares it."""
+    scales = {g.label: _pretraining_scale(g) for g in groups}
+    if len(set(scales.values())) == 1:
+        text = next(iter(scales.values())) + (" each" if len(scales) > 1 else "")
+    else:
+        text = "; ".join(f"{label}: {scale}" for label, scale in scales.items())
+    return f" Scale: {text}."
+
+
+def finetune_scale(runs: list[Run]) -> str:
+    """'6 epochs of 10 episodes x 150 steps' of the fine-tuning runs."""
+    scales = sorted(
+        {
+            f"{r.config.get('epochs', '?')} epochs of {r.config.get('episodes', '?')} episodes x "
+            f"{r.config.get('horizon', '?')} steps"
+            for r in runs
+        }
+    )
+    return f" Scale: {'; '.join(scales)}."
+
+
 def average_bound(run: Run) -> float:
     """Highest average entropy: sum_c p_M(c) log(free area of c), the uniform visitation."""
     logs, probs = np.array(run.log_free_area), np.array(run.configuration_probs)
@@ -268,7 +304,7 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     compared = " vs ".join(styles)
-    fig.suptitle(f"{env}: average entropy per epoch (mean, 95% CI over seeds)")
+    fig.suptitle(f"{env}: average entropy per epoch\n(mean, 95% CI over seeds)")
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_entropy_epochs.png")
     caption = (
@@ -506,6 +542,57 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
 
 
 # -------------------------------------------------------------------------- heatmaps and paths
+def aggregates_figure(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """rliable's IQM and mean and the performance profile of the final entropies, per wind."""
+    records = []
+    winds = winds_of(groups)
+    several = len(winds) > 1
+    for wind in winds:
+        members = at_wind(groups, wind)
+        styles = series_styles(members)
+        title = f"{env}{wind_title(wind, several)}"
+        path = out_dir / f"{env}{wind_tag(wind, several)}_aggregates.png"
+        draw_aggregates(members, {k: s.colour for k, s in styles.items()}, title, path)
+        caption = (
+            "rliable's aggregates of the final entropies (Agarwal et al., 2021), a score being one "
+            "seed's final entropy in one configuration. Left: interquartile mean (IQM) and mean of "
+            "all seed x configuration scores with stratified-bootstrap 95% intervals (each "
+            "configuration's seeds resampled on their own, 2,000 percentile resamples). Right: "
+            "performance profile, the share of scores above each entropy, with pointwise "
+            "intervals. The probability of improvement of each pair is in differences.csv "
+            f"(p_improvement) and the table below. Seeds: {seeds_text(members)}."
+        )
+        records.append(FigureRecord(path, f"{title}: aggregates over seeds", caption, "", env))
+    return records
+
+
+def diagnostics_figure(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """Drops and the exact against the one-step KL, for groups run with diagnostics=true."""
+    records = []
+    winds = winds_of(groups)
+    several = len(winds) > 1
+    for wind in winds:
+        members = diagnosed(at_wind(groups, wind))
+        if not members:
+            continue
+        styles = series_styles(members)
+        title = f"{env}{wind_title(wind, several)}"
+        path = out_dir / f"{env}{wind_tag(wind, several)}_diagnostics.png"
+        draw_diagnostics(members, styles, title, path)
+        caption = (
+            "Runs made with diagnostics=true. Top left: the exact KL of each epoch's accepted "
+            "update (likelihoods recomputed over whole histories) over the one-step KL the "
+            "gradient's likelihoods give (eq. 2.8), per seed and their median; 1 for a "
+            f"Markovian policy. Top right: single-epoch falls of more than {DROP_NATS:g} nat in "
+            f"one configuration's entropy from epoch {DROP_FROM} on, per seed. Bottom left: "
+            "each epoch's largest fall against the KL ratio of the update before it. Bottom "
+            "right: the share of action components past the clip. drops.csv lists the drops "
+            f"and the median ratios before and away from them. Seeds: {seeds_text(members)}."
+        )
+        records.append(FigureRecord(path, f"{title}: diagnostics", caption, "", env))
+    return records
+
+
 def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
     """Log visitation probability of the final policies, one figure per wind (5.3, 5.8, 5.11)."""
     records = []
@@ -529,7 +616,8 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
         some = next(iter(chosen[0][1].positions.values()))
         fig.suptitle(
             f"{env}{wind_title(wind, several)}: log probability of state visitation\n"
-            f"{some.shape[0]} trajectories of T={some.shape[1] - 1} steps per configuration"
+            f"{some.shape[0]} trajectories of T={some.shape[1] - 1} steps per configuration, "
+            "dashed: start area"
         )
         path = save(fig, out_dir / f"{env}{wind_tag(wind, several)}_heatmaps.png")
         who = "; ".join(f"{g.label}: seed {run.seed} of {len(g.runs)}" for g, run in chosen)
@@ -537,7 +625,8 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
             f"Log probability of state visitation (2-D histogram over the arena, one shared colour "
             f"scale; white: never visited; grey: walls) of {some.shape[0]} fresh trajectories of "
             f"{some.shape[1] - 1} steps per configuration, collected with the final policy of one "
-            f"representative seed per algorithm (the seed with the median final entropy): {who}."
+            f"representative seed per algorithm (the seed with the median final entropy): {who}. "
+            "Red dashed box: the start area."
         )
         records.append(
             FigureRecord(
@@ -565,21 +654,23 @@ def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRec
         names = group.configuration_names
         cols = min(len(names), 5)
         blocks = len(runs) * math.ceil(len(names) / cols)
-        fig = new_figure(2.5 * cols + 0.2, 2.75 * blocks + 0.5)
+        fig = new_figure(2.5 * cols + 1.0, 2.75 * blocks + 0.5)
         trajectory_grid(fig, world, [(f"seed {r.seed}", r.positions) for r in runs], names)
+        steps = next(iter(first.positions.values())).shape[1] - 1
         fig.suptitle(
-            f"{env}{wind_title(group.wind, several)}: {group.label}\n10 trajectories per "
-            "configuration, a point every 10 steps, lighter = earlier",
+            f"{env}{wind_title(group.wind, several)}: {group.label}\n{TRAJECTORIES} "
+            f"trajectories of T={steps} steps per configuration, coloured by step",
             fontsize=10,
         )
         name = f"{env}{wind_tag(group.wind, several)}_trajectories_{slug(group.label)}.png"
         path = save(fig, out_dir / name)
         caption = (
-            f"Ten trajectories of the final {group.label} policy in each configuration (columns) "
-            f"for seed{'s' if len(runs) > 1 else ''} {', '.join(str(r.seed) for r in runs)} "
-            f"(rows; {_seeds(len(group.runs))} in all; the first has "
-            "the median final entropy), a point every 10 steps, one "
-            "colour per trajectory, lighter points earlier in the trajectory; grey: walls."
+            f"{TRAJECTORIES} trajectories of the final {group.label} policy in each "
+            f"configuration (columns) for seed{'s' if len(runs) > 1 else ''} "
+            f"{', '.join(str(r.seed) for r in runs)} (rows; {_seeds(len(group.runs))} in all; "
+            "the first has the median final entropy), drawn through every step and coloured by "
+            "the step (colour bar); a white circle marks each start, a black square each end; "
+            "grey: walls." + scale_text([group])
         )
         thesis = THESIS_FIGURES.get((env, "trajectories", group.algo), "")
         records.append(
@@ -613,7 +704,7 @@ def finetune_curves(frame: pd.DataFrame) -> dict[tuple[str, int], tuple[np.ndarr
 
 
 def finetune_returns(
-    env: str, frame: pd.DataFrame, names: list[str], out_dir: Path
+    env: str, frame: pd.DataFrame, names: list[str], runs: list[Run], out_dir: Path
 ) -> list[FigureRecord]:
     """Fine-tuning returns per epoch, per configuration, per initialisation (5.9)."""
     records = []
@@ -658,6 +749,7 @@ def finetune_returns(
             "Average return per epoch of TRPO on a sparse goal-reaching task, per configuration, "
             "started from a pre-trained policy or from scratch. Line: mean over every (seed, "
             f"target area) curve; band: Student-t 95% CI over those curves ({who})."
+            + finetune_scale([r for r in runs if r.env == env])
         )
         records.append(
             FigureRecord(
@@ -682,15 +774,21 @@ def make_figures(
     for env in envs:
         members = [g for g in groups if g.env == env]
         if members:
-            records += entropy_curves(env, members, out_dir)
-            records += entropy_curves_by_config(env, members, out_dir)
-            records += final_entropy_bars(env, members, out_dir)
+            drawn = []
+            drawn += entropy_curves(env, members, out_dir)
+            drawn += entropy_curves_by_config(env, members, out_dir)
+            drawn += final_entropy_bars(env, members, out_dir)
+            drawn += aggregates_figure(env, members, out_dir)
+            drawn += diagnostics_figure(env, members, out_dir)
             if len(winds_of(members)) > 1:
-                records += entropy_against_wind(env, members, out_dir)
-            records += heatmaps(env, members, out_dir)
-            records += trajectories(env, members, out_dir)
-        frame = finetune_frame([r for r in finetune_runs if r.env == env])
+                drawn += entropy_against_wind(env, members, out_dir)
+            drawn += heatmaps(env, members, out_dir)
+            for record in drawn:
+                record.caption += scale_text(members)
+            records += drawn + trajectories(env, members, out_dir)
+        runs = [r for r in finetune_runs if r.env == env]
+        frame = finetune_frame(runs)
         if not frame.empty:
-            names = next((r.configuration_names for r in finetune_runs if r.env == env), [])
-            records += finetune_returns(env, frame, names, out_dir)
+            names = next((r.configuration_names for r in runs), [])
+            records += finetune_returns(env, frame, names, runs, out_dir)
     return records

@@ -27,6 +27,7 @@ th { background: #f3f3f3; }
 td.text, th.text { text-align: left; }
 .thesis { color: #06c; font-weight: 600; }
 .warn { color: #a40; }
+.notice { background: #fff4d6; border: 1px solid #e0b84a; padding: 0.6em 1em; }
 code { background: #f4f4f4; padding: 0 0.2em; }
 """
 
@@ -54,14 +55,49 @@ def _table(frame: pd.DataFrame, digits: int = 3) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
 
 
+# Below these, a report's runs test the program rather than compare algorithms (the thesis:
+# 500 epochs and 8 seeds, 4 in multigrid, tables A.1-A.3).
+SMOKE_SEEDS = 3
+SMOKE_EPOCHS = 100
+
+
+def scale_notice(groups: list[Group], finetune_runs: list) -> str:
+    """A boxed paragraph when the runs are at smoke scale, naming the groups that are."""
+    small = [
+        f"{g.env} {g.label}: {len(g.runs)} seed{'s' if len(g.runs) != 1 else ''}, "
+        f"{min(len(r.epochs) for r in g.runs)} epochs"
+        for g in groups
+        if len(g.runs) < SMOKE_SEEDS or min(len(r.epochs) for r in g.runs) < SMOKE_EPOCHS
+    ]
+    finetune_seeds = {r.seed for r in finetune_runs}
+    if finetune_runs and len(finetune_seeds) < SMOKE_SEEDS:
+        small.append(f"fine-tuning: {len(finetune_seeds)} seed(s)")
+    if not small:
+        return ""
+    return (
+        '<p class="notice"><strong>Smoke scale, not a result.</strong> '
+        + html.escape("; ".join(small))
+        + f". Under {SMOKE_SEEDS} seeds or {SMOKE_EPOCHS} epochs a report shows that the program "
+        "runs end to end; which algorithm is better needs the thesis' scale (500 epochs, 8 "
+        "seeds, tables A.1-A.3), or at least RESULTS.md's.</p>"
+    )
+
+
+def _under_root(path: Path, roots: list[Path]) -> str:
+    """A skipped run's path inside the runs folder that holds it."""
+    root = next((r for r in roots if Path(path).is_relative_to(r)), roots[0])
+    return _relative(path, root)
+
+
 def _relative(path: Path, start: Path) -> str:
     return Path(os.path.relpath(path, start)).as_posix()
 
 
 def write_index(
     out_dir: Path,
-    runs_root: Path,
+    runs_roots: list[Path],
     groups: list[Group],
+    finetune_runs: list,
     skipped: list[SkippedRun],
     figures: list[FigureRecord],
     tables: dict[str, pd.DataFrame],
@@ -77,7 +113,8 @@ def write_index(
         "<title>hmepol report</title>",
         f"<style>{STYLE}</style></head><body>",
         "<h1>hmepol report: maximum state-entropy exploration</h1>",
-        f"<p>Runs under <code>{e(str(runs_root))}</code>, report built "
+        f"<p>Runs under {', '.join(f'<code>{e(str(r))}</code>' for r in runs_roots)}, "
+        "report built "
         f"{dt.datetime.now().strftime('%Y-%m-%d %H:%M')}: {counts.text()} "
         f"({counts.pretraining_runs} pre-training runs in {counts.groups} groups, "
         f"{counts.finetune_runs} fine-tuning runs).</p>",
@@ -85,7 +122,10 @@ def write_index(
         "Student-t 95% confidence interval (none with a single seed). "
         "The final entropy of a run is "
         "its mean over the last 10% of epochs. The dashed line log(free area) is the entropy of a "
-        "uniform visitation of the free space, the highest any policy can reach.</p>",
+        "uniform visitation of the free space, the highest any policy can reach. Beside them, "
+        "rliable's aggregates (Agarwal et al., 2021): interquartile mean, mean and probability "
+        "of improvement with stratified-bootstrap 95% intervals, and performance profiles.</p>",
+        scale_notice(groups, finetune_runs),
         "<h2>Runs</h2>",
     ]
     run_rows = pd.DataFrame(
@@ -106,7 +146,7 @@ def write_index(
     if skipped:
         parts.append('<ul class="warn">')
         parts += [
-            f"<li><code>{e(_relative(s.path, runs_root))}</code>: {e(s.reason)}</li>"
+            f"<li><code>{e(_under_root(s.path, runs_roots))}</code>: {e(s.reason)}</li>"
             for s in skipped
         ]
         parts.append("</ul>")
@@ -129,13 +169,21 @@ def write_index(
 
     parts.append("<h2>Summary</h2>")
     parts.append("<h3>Final entropy per group and configuration (nats)</h3>")
+    parts.append(
+        "<p>Mean and Student-t 95% CI over seeds; IQM and mean with stratified-bootstrap 95% "
+        "intervals (<code>*_boot95_*</code>; the average row pools every seed x configuration "
+        "score).</p>"
+    )
     parts.append(_table(tables.get("summary", pd.DataFrame())))
     parts.append("<h3>Differences between algorithms (nats)</h3>")
     parts.append(
         "<p>Final entropy of the later algorithm minus the earlier one (order Mepol, α-Mepol, "
         "HMepol), in the same environment and wind. 95% CI: paired t-interval on per-seed "
         "differences when both groups ran the same seeds, Welch's t-interval otherwise "
-        "(column <code>method</code>).</p>"
+        "(column <code>method</code>). <code>p_improvement</code>: the probability that a run "
+        "of the later algorithm scores higher than a run of the earlier (per configuration the "
+        "share of seed pairs, ties one half, averaged over configurations), with its "
+        "stratified-bootstrap 95% interval.</p>"
     )
     parts.append(_table(tables.get("differences", pd.DataFrame())))
     finetune = tables.get("finetune", pd.DataFrame())
@@ -147,6 +195,16 @@ def write_index(
             "reaches the final mean return of the Mepol-initialised run.</p>"
         )
         parts.append(_table(finetune))
+    drops = tables.get("drops", pd.DataFrame())
+    if not drops.empty:
+        parts.append("<h3>Drops and the KL of the updates before them</h3>")
+        parts.append(
+            "<p>Runs made with <code>diagnostics=true</code>: per run, its single-epoch falls "
+            "of more than 1 nat in one configuration's entropy from epoch 30 on, and the median "
+            "exact / one-step KL ratio of the accepted updates just before them and of the "
+            "others.</p>"
+        )
+        parts.append(_table(drops))
     links = [e(_relative(path, out_dir)) for path in table_files]
     parts.append(
         "<p>Tables as files: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>"

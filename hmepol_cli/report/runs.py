@@ -65,7 +65,7 @@ RUN_SPECIFIC_KEYS = {
     "wind",
     "env.wind",
 }
-RUN_SPECIFIC_PREFIXES = ("hydra", "logger.", "checkpoint.")
+RUN_SPECIFIC_PREFIXES = ("hydra", "logger.", "checkpoint.", "eval.plot_")
 
 # Short names of the keys that usually vary, for labels and table columns.
 SHORT_NAMES = {
@@ -242,6 +242,17 @@ class Group:
     def finals(self, config: int | None = None) -> dict[int, float]:
         """Final entropy of every seed, {seed: nats}."""
         return {r.seed: r.final_entropy(config) for r in self.runs}
+
+    def scores(self, config: int | None = None) -> list[np.ndarray]:
+        """The score matrix of rliable's aggregates: one array of finite final entropies (one
+        per seed, seed order) per configuration, or only ``config``'s."""
+        configs = range(self.n_configurations) if config is None else [config]
+        out = []
+        for c in configs:
+            finals = self.finals(c)
+            values = np.array([finals[s] for s in sorted(finals)], dtype=float)
+            out.append(values[np.isfinite(values)])
+        return out
 
     def curves(self, config: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Entropy curves of all seeds aligned on epoch: (epochs,), (n_seeds, n_epochs)."""

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from hmepol_cli.report.aggregates import improvement_interval, iqm_interval, mean_interval
+from hmepol_cli.report.diagnostics import DROP_FROM, DROP_NATS, diagnosed, drop_table
 from hmepol_cli.report.figures import average_bound, finetune_curves, finetune_frame
 from hmepol_cli.report.runs import Group, Run, algo_label
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
@@ -43,13 +45,17 @@ def _config_rows(group: Group) -> list[tuple[int | None, str]]:
 
 
 def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
-    """One row per group and configuration: mean final entropy over seeds and its 95% CI."""
+    """One row per group and configuration: mean final entropy over seeds and its 95% t-interval,
+    then rliable's IQM and mean with stratified-bootstrap intervals (the "average" row's over every
+    seed x configuration score, the others' over that configuration's seeds)."""
     rows = []
     for group in groups:
         run = group.first
         for config, name in _config_rows(group):
             ci = mean_ci(list(group.finals(config).values()))
             bound = average_bound(run) if config is None else run.log_free_area[config]
+            scores = group.scores(config)
+            middle, mean = iqm_interval(scores), mean_interval(scores)
             rows.append(
                 {
                     "env": group.env,
@@ -62,6 +68,11 @@ def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
                     "ci95_low": ci.low,
                     "ci95_high": ci.high,
                     "ci95_half_width": ci.half_width,
+                    "iqm_nats": middle.estimate,
+                    "iqm_boot95_low": middle.low,
+                    "iqm_boot95_high": middle.high,
+                    "mean_boot95_low": mean.low,
+                    "mean_boot95_high": mean.high,
                     "log_free_area": bound,
                 }
             )
@@ -73,7 +84,9 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
     earlier one (algorithm order Mepol, alpha-Mepol, HMepol), per configuration, with its 95% CI.
 
     Paired t-interval when both groups ran the same seeds, Welch's t-interval otherwise
-    (the ``method`` column says which).
+    (the ``method`` column says which). ``p_improvement`` is rliable's probability that a run of
+    the later group scores higher than one of the earlier, with its stratified-bootstrap interval
+    (the "average" row's over every configuration).
     """
     rows = []
     by_setting: dict[tuple, list[Group]] = {}
@@ -83,6 +96,7 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
         for a, b in itertools.combinations(members, 2):
             for config, name in _config_rows(a):
                 d = difference_ci(a.finals(config), b.finals(config))
+                p = improvement_interval(b.scores(config), a.scores(config))
                 rows.append(
                     {
                         "env": a.env,
@@ -95,6 +109,9 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
                         "method": d.method,
                         "n_a": d.n_a,
                         "n_b": d.n_b,
+                        "p_improvement": p.estimate,
+                        "p_boot95_low": p.low,
+                        "p_boot95_high": p.high,
                     }
                 )
     return pd.DataFrame(rows)
@@ -179,6 +196,7 @@ def write_summary(
         "summary": final_entropy_table(groups),
         "differences": difference_table(groups),
         "finetune": finetune_table(finetune_runs),
+        "drops": drop_table(diagnosed(groups)),
     }
     files = []
     for name, table in tables.items():
@@ -188,16 +206,32 @@ def write_summary(
     text = [
         "# hmepol report: summary\n",
         "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs; then the "
-        "mean over seeds with a Student-t 95% confidence interval (n/a with one seed).\n",
+        "mean over seeds with a Student-t 95% confidence interval (n/a with one seed), and "
+        "rliable's aggregates (Agarwal et al., 2021): the interquartile mean (IQM) and the mean "
+        "with stratified-bootstrap 95% intervals (2,000 percentile resamples; the average row "
+        "pools every seed x configuration score, resampling each configuration's seeds on its "
+        "own).\n",
         "## Final entropy per group and configuration\n",
         to_markdown(tables["summary"]),
         "## Differences between algorithms (same env and wind)\n",
         "Later minus earlier algorithm; paired t-interval when both ran the same seeds, Welch's "
-        "t-interval otherwise (column `method`).\n",
+        "t-interval otherwise (column `method`). `p_improvement`: the probability that a run of "
+        "the later algorithm scores higher than a run of the earlier (per configuration the "
+        "share of seed pairs, ties one half; the average row averages it over configurations), "
+        "with its stratified-bootstrap interval.\n",
         to_markdown(tables["differences"]),
     ]
     if not tables["finetune"].empty:
         text += ["## Fine-tuning returns\n", to_markdown(tables["finetune"])]
+    if not tables["drops"].empty:
+        text += [
+            "## Drops and the KL of the updates before them (runs with diagnostics)\n",
+            f"A drop: a fall of more than {DROP_NATS:g} nat in one configuration's entropy from "
+            f"one epoch to the next, from epoch {DROP_FROM} on. KL ratio: the exact KL of an "
+            "accepted update over its one-step KL (median over the updates just before a drop, "
+            "and over the others).\n",
+            to_markdown(tables["drops"]),
+        ]
     files.append(out_dir / "summary.md")
     files[-1].write_text("\n".join(text))
     return tables, files

@@ -1,0 +1,110 @@
+"""rliable's aggregates (report/aggregates.py) against cases computed by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hmepol_cli.report.aggregates import (
+    improvement_interval,
+    iqm,
+    iqm_interval,
+    mean_interval,
+    performance_profile,
+)
+from hmepol_cli.report.runs import discover_runs, group_runs
+from hmepol_cli.report.summary import difference_table, final_entropy_table
+from tests.test_report import write_run
+
+
+def test_iqm_is_the_mean_of_the_middle_half():
+    assert iqm([8, 1, 7, 2, 6, 3, 5, 4]) == pytest.approx((3 + 4 + 5 + 6) / 4)
+    # rliable's IQM on a runs x tasks matrix pools every score: 12 scores, middle 6.
+    matrix = np.arange(12.0).reshape(4, 3)
+    assert iqm(matrix) == pytest.approx(np.mean(np.arange(3.0, 9.0)))
+
+
+def test_probability_of_improvement_by_hand():
+    # x = (1, 2) against y = (1.5, 3): of 4 pairs only 2 > 1.5 -> 1/4.
+    assert improvement_interval([np.array([1.0, 2.0])], [np.array([1.5, 3.0])]).estimate == 0.25
+    # A tie counts one half; tasks are averaged: task 1 gives 1/2, task 2 (x above y) gives 1.
+    p = improvement_interval(
+        [np.array([1.0, 1.0]), np.array([5.0, 6.0])], [np.array([1.0, 1.0]), np.array([0.0, 2.0])]
+    )
+    assert p.estimate == pytest.approx(0.75)
+    assert p.low == pytest.approx(0.75) and p.high == pytest.approx(0.75)  # no pair can change
+
+
+def test_bootstrap_is_stratified_by_configuration():
+    # Each configuration's seeds agree: resampling within configurations cannot move the mean,
+    # while resampling the pooled scores would (a resample of mostly 0s or mostly 10s).
+    tasks = [np.zeros(4), np.full(4, 10.0)]
+    mean = mean_interval(tasks)
+    assert (mean.estimate, mean.low, mean.high) == (5.0, 5.0, 5.0)
+    middle = iqm_interval(tasks)
+    assert middle.low == middle.high == middle.estimate == 5.0
+
+
+def test_performance_profile_by_hand():
+    tasks = [np.array([1.0, 2.0, 3.0]), np.array([4.0, 5.0, 6.0])]
+    share, low, high = performance_profile(tasks, np.array([0.0, 2.5, 6.0]))
+    assert share.tolist() == [1.0, pytest.approx(4 / 6), 0.0]
+    assert low[0] == high[0] == 1.0 and low[2] == high[2] == 0.0
+    assert low[1] <= share[1] <= high[1] and low[1] < high[1]
+
+
+def test_one_seed_has_no_interval():
+    value = iqm_interval([np.array([1.0]), np.array([2.0, 3.0])])
+    assert value.estimate == pytest.approx(2.0)
+    assert np.isnan(value.low) and np.isnan(value.high)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.lists(
+        st.lists(st.floats(-5, 5, allow_nan=False), min_size=2, max_size=6), min_size=1, max_size=3
+    )
+)
+def test_intervals_hold_their_estimate_and_stay_within_the_scores(values):
+    tasks = [np.array(v) for v in values]
+    every = np.concatenate(tasks)
+    for interval in (mean_interval(tasks), iqm_interval(tasks)):
+        assert every.min() - 1e-9 <= interval.low <= interval.high <= every.max() + 1e-9
+    p = improvement_interval(tasks, tasks)
+    assert p.estimate == pytest.approx(0.5)  # an algorithm against itself
+
+
+def test_same_scores_give_the_same_intervals():
+    rng = np.random.default_rng(3)
+    tasks = [rng.normal(size=5), rng.normal(size=5)]
+    assert iqm_interval(tasks) == iqm_interval([t.copy() for t in tasks])
+
+
+def test_summary_and_differences_hold_the_aggregates(tmp_path):
+    # Two configurations, final entropies final + 0.1 and final - 0.1 per seed (config_finals).
+    finals = {"mepol": [1.0, 1.2, 1.1, 1.45], "hmepol": [1.5, 1.4, 1.9, 1.6]}
+    for algo, values in finals.items():
+        for seed, value in enumerate(values):
+            write_run(
+                tmp_path, algo=algo, seed=seed, final=value, epochs=10,
+                config_finals=(value + 0.1, value - 0.1),
+            )  # fmt: skip
+    groups = group_runs(discover_runs(tmp_path)[0])
+    summary = final_entropy_table(groups).set_index(["group", "config"])
+    scores = np.concatenate([np.array(finals["mepol"]) + 0.1, np.array(finals["mepol"]) - 0.1])
+    assert summary.loc[("Mepol", "average"), "iqm_nats"] == pytest.approx(iqm(scores))
+    assert summary.loc[("Mepol", "0: south"), "iqm_nats"] == pytest.approx(
+        iqm(np.array(finals["mepol"]) + 0.1)
+    )
+    low, high = summary.loc[("Mepol", "average"), ["mean_boot95_low", "mean_boot95_high"]]
+    assert low < scores.mean() < high
+    diff = difference_table(groups).set_index("config")
+    # P(HMepol > Mepol) in configuration 0: 15 of the 16 seed pairs (1.4 < 1.45 is the other).
+    south = diff.loc["0: south"]
+    hm, me = np.array(finals["hmepol"]) + 0.1, np.array(finals["mepol"]) + 0.1
+    assert south["p_improvement"] == pytest.approx(15 / 16)
+    assert diff.loc["average", "p_improvement"] == pytest.approx(
+        np.mean(hm[:, None] > me[None, :])  # both configurations shift both groups alike
+    )
