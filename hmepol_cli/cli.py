@@ -17,6 +17,7 @@ import os
 import re
 import secrets
 import sys
+import time
 import types
 import warnings
 from pathlib import Path
@@ -317,17 +318,47 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> Dict
 
 
 # --------------------------------------------------------------------------- train / sweep
+def _parallel_jobs() -> int:
+    """How many jobs of this sweep run at once (joblib's n_jobs; 1 outside a parallel sweep)."""
+    if not HydraConfig.initialized():
+        return 1
+    hc = HydraConfig.get()
+    n_jobs = OmegaConf.select(hc, "launcher.n_jobs") if hc.mode == RunMode.MULTIRUN else None
+    if not n_jobs:
+        return 1
+    return (os.cpu_count() or 1) if n_jobs < 0 else int(n_jobs)
+
+
 def _set_threads(cfg: DictConfig) -> None:
     if cfg.threads > 0:
         torch.set_num_threads(int(cfg.threads))
         return
-    if not HydraConfig.initialized():
-        return
-    hc = HydraConfig.get()
-    n_jobs = OmegaConf.select(hc, "launcher.n_jobs") if hc.mode == RunMode.MULTIRUN else None
-    if n_jobs:  # joblib reuses workers: set threads inside each job so jobs don't oversubscribe
-        n_jobs = os.cpu_count() if n_jobs < 0 else n_jobs
+    n_jobs = _parallel_jobs()
+    if n_jobs > 1:  # joblib reuses workers: set threads inside each job so jobs don't oversubscribe
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // n_jobs))
+
+
+def _finished_line(run_dir: Path, seconds: float) -> str:
+    """'run written to DIR' with, in a parallel sweep, what a person watching wants to know."""
+    if _parallel_jobs() <= 1:
+        return f"hmepol: run written to {run_dir}"
+    info = read_json(run_dir / RUN_INFO)
+    last = _last_row(run_dir / "epochs.csv")
+    entropy = f", H={float(last['entropy']):.3f} nats" if "entropy" in last else ""
+    minutes, rest = divmod(int(round(seconds)), 60)
+    return (
+        f"hmepol: job {HydraConfig.get().job.num} finished: {info.get('env')}/{info.get('algo')} "
+        f"seed {info.get('seed')}, {info.get('epochs_done')} epochs{entropy}, "
+        f"{minutes} min {rest} s -> {run_dir}"
+    )
+
+
+def _last_row(path: Path) -> dict[str, str]:
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return {}
+    return dict(zip(lines[0].split(","), lines[-1].split(","), strict=False)) if lines else {}
 
 
 def _train(cfg: DictConfig) -> list[str]:
@@ -432,8 +463,12 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
         todo.append((cfg, run_dir))
     if todo:
         _set_threads(todo[0][0])
+        if _parallel_jobs() > 1:  # bars of parallel jobs share one line: a line per job instead
+            for cfg, _ in todo:
+                cfg.progress = False
         for _, run_dir in todo:
             print(f"hmepol: training into {run_dir}", flush=True)
+        started = time.monotonic()
         trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
         try:
             trainer.train(resume=resuming)
@@ -448,7 +483,7 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
             ) from None
         failures = trainer.failures
         for run_dir in (d for _, d in todo if d not in failures):
-            print(f"hmepol: run written to {run_dir}")
+            print(_finished_line(run_dir, time.monotonic() - started), flush=True)
         if failures:
             raise RunFailure(
                 "; ".join(f"{run_dir}: {reason}" for run_dir, reason in failures.items())
@@ -567,26 +602,29 @@ def _report(args: list[str]) -> None:
 
     parser = argparse.ArgumentParser(
         prog="hmepol report",
-        description="Aggregate finished runs into the thesis' figures and tables: mean and 95%% "
+        description="Aggregate finished runs into the thesis' figures and tables: mean and 95% "
         "confidence interval over seeds of every curve and bar of chapter 5, a summary table "
         "with the differences between algorithms, and index.html to read them.",
     )
     parser.add_argument(
         "runs",
-        nargs="?",
-        default="outputs",
-        help="folder holding run directories, searched recursively (default: outputs)",
+        nargs="*",
+        default=["outputs"],
+        help="folders holding run directories, searched recursively (default: outputs)",
     )
-    parser.add_argument("--out", default=None, help="report folder (default: RUNS/report)")
+    parser.add_argument(
+        "--out", default=None, help="report folder (default: the first RUNS folder's report/)"
+    )
     ns = parser.parse_args(args)
-    runs = Path(ns.runs)
-    if not runs.is_dir():
-        fail(f"{str(runs)!r} is not a directory of runs")
-    out = Path(ns.out) if ns.out else runs / "report"
+    roots = [Path(r) for r in ns.runs]
+    for runs in roots:
+        if not runs.is_dir():
+            fail(f"{str(runs)!r} is not a directory of runs")
+    out = Path(ns.out) if ns.out else roots[0] / "report"
     if out.exists() and not out.is_dir():
         fail(f"--out {str(out)!r} is a file; give a folder for the report")
     try:
-        index = run_report(runs, out)
+        index = run_report(roots, out)
     except UserError as error:
         fail(str(error))
     print(f"hmepol: report written to {index}")

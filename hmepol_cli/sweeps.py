@@ -8,6 +8,7 @@ sweeper does; ``override_dirname`` names a job's folder as Hydra names it
 from __future__ import annotations
 
 import itertools
+import logging
 import re
 from collections.abc import Sequence
 
@@ -41,3 +42,11 @@ def override_dirname(
         o.input_line for o in parse(overrides) if o.key_or_group not in set(exclude_keys)
     )
     return re.sub("=", kv_sep, item_sep.join(lines))
+
+
+class NoLibraryBanner(logging.Filter):
+    """Drops the joblib launcher's banner (``Joblib.Parallel(n_jobs=2, backend=loky, ...) is
+    launching N jobs``) from Hydra's log; the sweep's folder and its jobs' overrides stay."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Joblib.Parallel(")

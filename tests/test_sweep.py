@@ -45,7 +45,7 @@ def runs(root: Path) -> dict[Path, OmegaConf]:
 
 @pytest.mark.slow
 def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again(tmp_path):
-    proc = sweep(tmp_path, "env=corridor", "wind=0.05,0.4", "seed=0,1")
+    proc = sweep(tmp_path, "env=corridor", "wind=0.05,0.4", "seed=0,1", "progress=true")
     assert proc.returncode == 0, proc.stderr[-3000:]
     found = runs(tmp_path / "sweep")
     assert len(found) == 4
@@ -53,6 +53,12 @@ def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again
     assert recorded == [(0.05, 0.05, 0), (0.05, 0.05, 1), (0.4, 0.4, 0), (0.4, 0.4, 1)]
     for run_dir in found:
         assert (run_dir / "epochs.csv").read_text().count("\n") == 2  # header + 1 epoch
+    # Progress a person can read: no bars of parallel jobs sharing a line, no joblib banner,
+    # one line per finished job naming it, its entropy and its folder.
+    assert "Joblib.Parallel" not in proc.stdout + proc.stderr
+    assert "\r" not in proc.stderr
+    finished = [line for line in proc.stdout.splitlines() if " finished: corridor/" in line]
+    assert len(finished) == 4 and all("H=" in line and " -> " in line for line in finished)
     again = sweep(tmp_path, "env=corridor", "wind=0.05,0.4", "seed=0,1")
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("already finished") == 4
