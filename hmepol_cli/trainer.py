@@ -11,10 +11,8 @@ stops there, recorded as failed, while the others go on.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
-import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +32,7 @@ from hmepol_cli.mepol import EpochStats, OffPolicySettings
 from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 from hmepol_cli.precision import precision_of
+from hmepol_cli.records import epoch_rows, precision_drift
 from hmepol_cli.rundir import (
     CHECKPOINT,
     EVAL_DIR,
@@ -294,14 +293,14 @@ class Trainer:
         diverged = (
             stats.history_max > alarms.history_bound or stats.action_max > alarms.action_bound
         )
-        epochs, batches, steps = _epoch_rows(epoch, stats, diverged, self.world.n_configurations)
+        epochs, batches, steps = epoch_rows(epoch, stats, diverged, self.world.n_configurations)
         member.log.append(epochs=pd.DataFrame([epochs]), batches=batches, steps=steps)
         self.save(s, epoch + 1)
         member.tracking.scalars(epoch, scalars_of(epochs, self.world.configuration_names))
         member.directory.update(epochs_done=epoch + 1, logged_through=epoch)
         if diverged:
             self._warn_divergence(s, epoch, stats)
-        drift = _precision_drift(stats)
+        drift = precision_drift(stats)
         if drift > alarms.precision_drift:
             log.warning(
                 "%s: epoch %d: the lowered precision's KL is %.1f%% off the full-precision one "
@@ -386,7 +385,6 @@ class Trainer:
             e.horizon,
             generators,
             plot_trajectories=e.plot_trajectories,
-            plot_every=e.plot_every,
         )
         step = self.cfg.epochs - 1 if epoch is None else epoch
         for member in self.members:
@@ -405,56 +403,3 @@ class Trainer:
             stats.action_max,
             alarms.action_bound,
         )
-
-
-def _precision_drift(stats: EpochStats) -> float:
-    """Relative difference of the accepted step's KL in the lowered and in full precision
-    (0 in full precision, or when both are ~0)."""
-    u = stats.update
-    if not math.isfinite(u.kl_full_precision) or u.kl_full_precision < 1e-12:
-        return 0.0
-    return abs(u.kl - u.kl_full_precision) / u.kl_full_precision
-
-
-def _epoch_rows(
-    epoch: int, stats: EpochStats, diverged: bool, n_configurations: int
-) -> tuple[dict, pd.DataFrame, pd.DataFrame | None]:
-    """One member's epoch as its epochs.csv row, batches.csv rows and steps.csv rows."""
-    u = stats.update
-    row = {"epoch": epoch, "entropy": float(stats.entropies.mean()), "objective": stats.objective}
-    for c in range(n_configurations):
-        drawn = stats.batch_configurations == c
-        row[f"entropy_c{c}"] = float(stats.entropies[drawn].mean()) if drawn.any() else math.nan
-    row.update(
-        entropy_iw=float(u.entropies.mean()),
-        kl=u.kl,
-        kl_exact=u.kl_exact,
-        kl_full_precision=u.kl_full_precision,
-        entropy_iw_full_precision=u.entropy_iw_full_precision,
-        off_iters=u.off_iters,
-        backtracks=u.backtracks,
-        lr=u.lr,
-        history_max=stats.history_max,
-        action_max=stats.action_max,
-        log_std=stats.log_std,
-        clip_share=stats.clip_share,
-        diverged=diverged,
-        floor_share=stats.floor_share,
-        seconds=stats.seconds["epoch"],
-        collect_seconds=stats.seconds["collect"],
-        neighbours_seconds=stats.seconds["neighbours"],
-        update_seconds=stats.seconds["update"],
-        wall_time=time.time(),
-    )
-    batches = pd.DataFrame(
-        {
-            "epoch": epoch,
-            "batch": range(len(stats.entropies)),
-            "config": stats.batch_configurations,
-            "entropy": stats.entropies,
-        }
-    )
-    steps = None
-    if u.steps:
-        steps = pd.DataFrame([{"epoch": epoch, **dataclasses.asdict(r)} for r in u.steps])
-    return row, batches, steps
