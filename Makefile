@@ -57,9 +57,12 @@ reproduce-quick-slope:
 reproduce-quick-multigrid:
 	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/multigrid
 
-# RESULTS.md's figures and tables, rebuilt from the runs kept in docs/results/ (seconds).
+# RESULTS.md's figures and tables, rebuilt from the runs kept in docs/results/ (about a minute):
+# the chapter 5 runs, the collapse study (issue 26) and the float32 / bf16 curves (issue 22).
 results:
-	hmepol report docs/results --out docs/results
+	hmepol report docs/results/full docs/results/quick --out docs/results
+	hmepol report docs/results/collapse --out docs/results/collapse/report
+	hmepol report docs/results/precision --out docs/results/precision/report
 
 # Chapter 5 at the thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid) as
 # populations over hyperparameters (hydra/launcher=population groups each sweep's runs by their
