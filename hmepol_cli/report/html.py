@@ -27,6 +27,7 @@ th { background: #f3f3f3; }
 td.text, th.text { text-align: left; }
 .thesis { color: #06c; font-weight: 600; }
 .warn { color: #a40; }
+.wide { overflow-x: auto; max-width: 100%; }
 .notice { background: #fff4d6; border: 1px solid #e0b84a; padding: 0.6em 1em; }
 code { background: #f4f4f4; padding: 0 0.2em; }
 """
@@ -52,7 +53,8 @@ def _table(frame: pd.DataFrame, digits: int = 3) -> str:
             for c, v in zip(frame.columns, row, strict=True)
         )
         body.append(f"<tr>{cells}</tr>")
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+    table = f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+    return f'<div class="wide">{table}</div>'  # a wide table scrolls, the page does not
 
 
 # Below these, a report's runs test the program rather than compare algorithms (the thesis:
