@@ -111,6 +111,10 @@ def test_thesis_presets_carry_table_values(hydra_compose):
     )
     demo = hydra_compose(config_name="config", overrides=["experiment=demo"])
     assert demo.epochs == 15 and demo.algo.trajectories == 40  # presets win over top-level defaults
+    exact = hydra_compose(config_name="config", overrides=["experiment=corridor_hmepol_exact"])
+    assert exact.algo.trust_region == "exact"
+    exact.algo.trust_region = cfg.algo.trust_region
+    assert exact == cfg  # ours: the thesis preset with only the trust region changed
     cfg = hydra_compose(config_name="config", overrides=["experiment=multigrid_alphamepol"])
     assert (cfg.algo.objective, cfg.algo.alpha, cfg.env.name) == ("cvar", 0.1, "multigrid")
 
@@ -129,10 +133,18 @@ def test_presets_hold_only_what_they_change(hydra_compose):
 
     for path in sorted((Path(__file__).parents[1] / "conf" / "experiment").glob("*.yaml")):
         preset = yaml.safe_load(path.read_text())
-        chosen = [
-            f"{k.removeprefix('override /')}={v}"
-            for d in preset.pop("defaults")
-            for k, v in d.items()
+        chosen = [  # an entry that names another preset builds on it (experiment=<it>)
+            *(
+                f"experiment={d}"
+                for d in preset["defaults"]
+                if isinstance(d, str) and d != "_self_"
+            ),
+            *(
+                f"{k.removeprefix('override /')}={v}"
+                for d in preset.pop("defaults")
+                if isinstance(d, dict)
+                for k, v in d.items()
+            ),
         ]
         algos = [[]] if any(c.startswith("algo=") for c in chosen) else [
             [f"algo={a}"] for a in ("mepol", "alphamepol", "hmepol")
