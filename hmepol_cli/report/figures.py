@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -542,16 +542,29 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
 
 
 # -------------------------------------------------------------------------- heatmaps and paths
-def aggregates_figure(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
-    """rliable's IQM and mean and the performance profile of the final entropies, per wind."""
-    records = []
+def per_wind(
+    env: str, groups: list[Group], name: str
+) -> Iterator[tuple[float, list[Group], str, str]]:
+    """For each wind of ``groups``: the wind, its groups, the figure's title and file name
+    (the wind is named in both only when the groups have several)."""
     winds = winds_of(groups)
     several = len(winds) > 1
     for wind in winds:
-        members = at_wind(groups, wind)
+        tag = wind_tag(wind, several)
+        yield (
+            wind,
+            at_wind(groups, wind),
+            f"{env}{wind_title(wind, several)}",
+            f"{env}{tag}_{name}.png",
+        )
+
+
+def aggregates_figure(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
+    """rliable's IQM and mean and the performance profile of the final entropies, per wind."""
+    records = []
+    for _, members, title, name in per_wind(env, groups, "aggregates"):
         styles = series_styles(members)
-        title = f"{env}{wind_title(wind, several)}"
-        path = out_dir / f"{env}{wind_tag(wind, several)}_aggregates.png"
+        path = out_dir / name
         draw_aggregates(members, {k: s.colour for k, s in styles.items()}, title, path)
         caption = (
             "rliable's aggregates of the final entropies (Agarwal et al., 2021), a score being one "
@@ -569,15 +582,12 @@ def aggregates_figure(env: str, groups: list[Group], out_dir: Path) -> list[Figu
 def diagnostics_figure(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
     """Drops and the exact against the one-step KL, for groups run with diagnostics=true."""
     records = []
-    winds = winds_of(groups)
-    several = len(winds) > 1
-    for wind in winds:
-        members = diagnosed(at_wind(groups, wind))
+    for _, at, title, name in per_wind(env, groups, "diagnostics"):
+        members = diagnosed(at)
         if not members:
             continue
         styles = series_styles(members)
-        title = f"{env}{wind_title(wind, several)}"
-        path = out_dir / f"{env}{wind_tag(wind, several)}_diagnostics.png"
+        path = out_dir / name
         draw_diagnostics(members, styles, title, path)
         caption = (
             "Runs made with diagnostics=true. Top left: the exact KL of each epoch's accepted "
@@ -596,10 +606,8 @@ def diagnostics_figure(env: str, groups: list[Group], out_dir: Path) -> list[Fig
 def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
     """Log visitation probability of the final policies, one figure per wind (5.3, 5.8, 5.11)."""
     records = []
-    winds = winds_of(groups)
-    several = len(winds) > 1
-    for wind in winds:
-        members = [g for g in at_wind(groups, wind) if g.representative().positions]
+    for wind, at, title, name in per_wind(env, groups, "heatmaps"):
+        members = [g for g in at if g.representative().positions]
         if not members:
             continue
         world = load_world(env, wind)
@@ -615,11 +623,11 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
         heatmap_grid(fig, world, rows, names)
         some = next(iter(chosen[0][1].positions.values()))
         fig.suptitle(
-            f"{env}{wind_title(wind, several)}: log probability of state visitation\n"
+            f"{title}: log probability of state visitation\n"
             f"{some.shape[0]} trajectories of T={some.shape[1] - 1} steps per configuration, "
             "dashed: start area"
         )
-        path = save(fig, out_dir / f"{env}{wind_tag(wind, several)}_heatmaps.png")
+        path = save(fig, out_dir / name)
         who = "; ".join(f"{g.label}: seed {run.seed} of {len(g.runs)}" for g, run in chosen)
         caption = (
             f"Log probability of state visitation (2-D histogram over the arena, one shared colour "
@@ -631,7 +639,7 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
         records.append(
             FigureRecord(
                 path,
-                f"{env}{wind_title(wind, several)}: visitation heatmaps",
+                f"{title}: visitation heatmaps",
                 caption,
                 THESIS_FIGURES.get((env, "heatmaps"), ""),
                 env,
