@@ -63,6 +63,9 @@ class AlgoConfig:
     # Which likelihoods the trust region's KL (eq. 2.8) is computed from: "gradient", those the
     # gradient uses (policy.bptt; the thesis), or "exact", recomputed over the whole history.
     trust_region: str = "gradient"
+    # Ours (issue 26, question 3): "epoch" starts every epoch's off-policy loop with fresh Adam
+    # moments and step count; null (the thesis and the reference) keeps one Adam for the run.
+    adam_reset: str | None = None
 
 
 @dataclass
@@ -341,6 +344,11 @@ def validate(cfg: DictConfig) -> None:
     _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
     _one_of("algo.backtracking", cfg.algo.backtracking, BACKTRACKING)
     _one_of("algo.backtrack_restore", cfg.algo.backtrack_restore, RESTORE)
+    if cfg.algo.get("adam_reset") not in (None, "epoch"):
+        raise ConfigError(
+            f"algo.adam_reset={cfg.algo.adam_reset!r} is not allowed; choose null (one Adam "
+            "for the whole run, the thesis) or epoch (fresh moments every epoch)"
+        )
     _one_of("estimator", cfg.estimator.name, tuple(ESTIMATORS))
     _one_of("estimator.neighbours", cfg.estimator.neighbours, NEIGHBOURS)
     if not 0 < cfg.algo.alpha <= 1:  # also refuses nan

@@ -64,6 +64,7 @@ class OffPolicySettings:
     backtrack_tries: int
     backtrack_factor: float
     restore: str  # parameters | parameters_and_adam
+    adam_reset: bool  # fresh Adam moments at the start of every epoch's loop (ours)
     exact_kl: bool  # judge steps by the KL of likelihoods over the whole history
     bptt: int | None  # steps of the recursion the likelihoods recompute (None: all)
     diagnostics: bool = False  # record every step (StepRecord), the exact KL among them
@@ -87,6 +88,7 @@ class OffPolicySettings:
             backtrack_tries=int(a.lr_backtrack_tries),
             backtrack_factor=float(a.lr_backtrack_factor),
             restore=str(a.get("backtrack_restore", "parameters_and_adam")),
+            adam_reset=a.get("adam_reset") == "epoch",
             exact_kl=a.trust_region == "exact" and history_size > 0,
             bptt=parse_bptt(cfg.policy.bptt),
             diagnostics=bool(cfg.get("diagnostics", False)),
@@ -407,6 +409,8 @@ def off_policy_loop(
     Gradients are each member's own (the members' objectives share no parameter)."""
     s, device, size = settings, population.device, population.size
     params = population.params
+    if s.adam_reset:
+        optimizer.reset(_mask(members.tolist(), size, device))
     # theta' = theta: the IW objective equals the on-policy one and the KL is 0.
     start = surrogate(torch.arange(len(members), device=device))
     grads = _gradients(start.objective, params)

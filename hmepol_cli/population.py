@@ -219,6 +219,15 @@ class PopulationAdam:
             self.exp_avg[k], self.exp_avg_sq[k] = m, v
         self.steps = steps
 
+    @torch.no_grad()
+    def reset(self, mask: torch.Tensor) -> None:
+        """Fresh moments and step count for the members where ``mask`` (S,) is True."""
+        self.steps = torch.where(mask, torch.zeros_like(self.steps), self.steps)
+        for k, p in self.params.items():
+            keep = mask.view((-1,) + (1,) * (p.dim() - 1))
+            self.exp_avg[k] = torch.where(keep, 0.0, self.exp_avg[k])
+            self.exp_avg_sq[k] = torch.where(keep, 0.0, self.exp_avg_sq[k])
+
     @property
     def _dtype(self) -> torch.dtype:
         return next(iter(self.params.values())).dtype

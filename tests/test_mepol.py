@@ -23,7 +23,7 @@ def settings(size: int = 1, **changes) -> OffPolicySettings:
     base = OffPolicySettings(
         trajectories=10, horizon=4, batch_size=5, estimator=KNNEstimator(2),
         members=(member,) * size, backtracking="reference", backtrack_tries=10,
-        backtrack_factor=2.0, restore="parameters", exact_kl=False, bptt=1,
+        backtrack_factor=2.0, restore="parameters", adam_reset=False, exact_kl=False, bptt=1,
     )  # fmt: skip
     return dataclasses.replace(base, **changes)
 
@@ -160,3 +160,32 @@ def test_members_backtrack_and_stop_each_on_their_own():
         alone = Quadratic(pop1, scale=surrogate.scale[m : m + 1])
         (r,) = off_policy_loop(pop1, adam1, alone, torch.tensor([0]), settings(1, max_off_iters=10))
         assert (r.off_iters, r.backtracks, r.lr) == (single.off_iters, single.backtracks, single.lr)
+
+
+def test_adam_reset_starts_each_epoch_with_fresh_moments_for_the_members_in_it():
+    # Adam's first step from fresh moments is lr * g / (|g| + eps) (m = (1 - b1) g and
+    # v = (1 - b2) g^2, both bias-corrected back to g and g^2): computed here by hand.
+    pop, adam = population(2)
+    ones = torch.ones(2, dtype=torch.bool)
+    for _ in range(3):  # a history of one gradient...
+        adam.step(
+            {k: torch.ones_like(v) for k, v in pop.params.items()}, torch.full((2,), LR), ones
+        )
+    adam.reset(torch.tensor([True, False]))
+    assert float(adam.steps[0]) == 0 and float(adam.steps[1]) == 3
+    before = {k: v.detach().clone() for k, v in pop.params.items()}
+    g = {k: -2.0 * torch.ones_like(v) for k, v in pop.params.items()}  # ...then the opposite one
+    adam.step(g, torch.full((2,), LR), ones)
+    for k, v in pop.params.items():
+        step = before[k] - v.detach()
+        assert torch.allclose(step[0], torch.full_like(step[0], -LR * 2 / (2 + adam.eps)))
+        assert not torch.allclose(step[1], step[0])  # member 1 still carries its momentum
+
+
+def test_adam_reset_epoch_counts_only_the_epochs_own_steps():
+    for reset, expected in ((False, 8), (True, 4)):
+        pop, adam = population()
+        for _ in range(2):  # two epochs of 4 tried steps each (see the first test)
+            surrogate = Quadratic(pop)
+            off_policy_loop(pop, adam, surrogate, torch.tensor([0]), settings(adam_reset=reset))
+        assert float(adam.steps[0]) == expected
