@@ -99,5 +99,5 @@ finetune-corridor:
 	  for a in mepol hmepol; do \
 	    hmepol finetune init=$(FULL_DIR)/corridor/experiment-corridor_$${a}_seed-$${s}_wind-0.4 $(FINETUNE) output_dir=$(FULL_DIR)/finetune/$${a}-seed$${s} || exit 1; \
 	  done; \
-	  hmepol finetune init=none env.name=corridor env.wind=0.4 seed=$$s $(FINETUNE) output_dir=$(FULL_DIR)/finetune/scratch-seed$$s || exit 1; \
+	  hmepol finetune init=none env=corridor wind=0.4 seed=$$s $(FINETUNE) output_dir=$(FULL_DIR)/finetune/scratch-seed$$s || exit 1; \
 	done
