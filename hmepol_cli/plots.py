@@ -147,8 +147,9 @@ def _blocks(fig: Figure, n_blocks: int, rows_per_block: int, cols: int, labels: 
     subfigs = fig.subfigures(n_blocks, 1, squeeze=False)[:, 0]
     grids = []
     for subfig, label in zip(subfigs, labels, strict=True):
-        if label:
-            subfig.suptitle(label, fontsize=10, fontweight="bold")
+        if label:  # ~8 bold 10-point characters an inch: a longer label gets smaller type
+            fits = 8.0 * subfig.figure.get_figwidth()
+            subfig.suptitle(label, fontsize=min(10.0, 10.0 * fits / len(label)), fontweight="bold")
         grids.append(subfig.subplots(rows_per_block, cols, squeeze=False))
     return grids
 
