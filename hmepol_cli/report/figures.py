@@ -711,6 +711,15 @@ def finetune_curves(frame: pd.DataFrame) -> dict[tuple[str, int], tuple[np.ndarr
     return out
 
 
+def _init_epochs(frame: pd.DataFrame, init: str) -> str:
+    """ ", from epoch 75": the pre-training epochs of the policies the fine-tunings of ``init``
+    started from (finetune.csv's init_epoch; "" from scratch and for runs that predate it)."""
+    if init == "scratch" or "init_epoch" not in frame:
+        return ""
+    epochs = frame.loc[frame["algo_init"] == init, "init_epoch"].dropna().unique()
+    return f", from epoch {', '.join(str(int(e)) for e in sorted(epochs))}" if len(epochs) else ""
+
+
 def finetune_returns(
     env: str, frame: pd.DataFrame, names: list[str], runs: list[Run], out_dir: Path
 ) -> list[FigureRecord]:
@@ -736,7 +745,7 @@ def finetune_returns(
                 epochs, data = curves[(init, config)]
                 mean, half, _ = curve_ci(data)
                 name = "TRPO from scratch" if init == "scratch" else f"{algo_label(init)} init"
-                label = f"{name} (n={data.shape[0]})"
+                label = f"{name}{_init_epochs(part, init)} (n={data.shape[0]})"
                 plot_mean(ax, epochs, mean, half, algo_colour(init), "-", label)
             title = names[config] if config < len(names) else f"{config}"
             ax.set_title(f"config {config}: {title}", fontsize=10)
