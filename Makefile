@@ -64,6 +64,7 @@ results:
 	hmepol report docs/results/collapse/n20-* --out docs/results/collapse/report-n20
 	hmepol report docs/results/collapse/n100-gradient docs/results/collapse/n100-exact docs/results/collapse/n100-mepol --out docs/results/collapse/report-n100
 	hmepol report docs/results/collapse/finetune-epoch100 --out docs/results/collapse/report-finetune-epoch100
+	hmepol report docs/results/collapse/finetune-epoch75 --out docs/results/collapse/report-finetune-epoch75
 	hmepol report docs/results/precision --out docs/results/precision/report
 
 # Chapter 5 at the thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid) as
