@@ -723,3 +723,30 @@ def test_drops_and_the_kl_ratio_of_the_update_before_them_by_hand(tmp_path):
     assert hmepol["kl_ratio_before_drops"] == pytest.approx(50.0)
     assert hmepol["kl_ratio_other_updates"] == pytest.approx(2.0)
     assert {g.label for g in diagnosed(groups)} == {"Mepol", "HMepol"}
+
+
+def test_a_fine_tuning_legend_names_the_pre_training_epoch_it_started_from():
+    from hmepol_cli.report.figures import _init_epochs
+
+    frame = pd.DataFrame(
+        {"algo_init": ["hmepol", "hmepol", "mepol", "scratch"], "init_epoch": [75, 75, 100, None]}
+    )
+    assert _init_epochs(frame, "hmepol") == ", from epoch 75"
+    assert _init_epochs(frame, "mepol") == ", from epoch 100"
+    assert _init_epochs(frame, "scratch") == ""
+    assert _init_epochs(frame.drop(columns="init_epoch"), "hmepol") == ""  # older runs
+
+
+def test_a_block_label_too_long_for_the_figure_gets_smaller_type():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from hmepol_cli.plots import _blocks
+
+    fig = Figure(figsize=(6.2, 6))
+    _blocks(fig, 2, 1, 2, ["short", "x" * 100])
+    short, long = (sub._suptitle for sub in fig.subfigs)
+    assert short.get_fontsize() == 10
+    assert long.get_fontsize() == pytest.approx(10 * 8.0 * 6.2 / 100)
