@@ -7,6 +7,7 @@ backend), so plotting works headless and from worker processes.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -136,6 +137,19 @@ def visitation_log_prob(
     with np.errstate(divide="ignore"):
         logp = np.log(counts / total) if total > 0 else np.full_like(counts, -np.inf)
     return np.ma.masked_invalid(logp.T)
+
+
+def category_labels(
+    labels: Sequence[str], axis_inches: float, fontsize: float = 8.0
+) -> tuple[list[str], float]:
+    """Labels for ticks side by side on an axis ``axis_inches`` wide: each broken before its
+    parenthesis and after its commas ("HMepol (a=1, b=2)" -> three lines), and one type size
+    for all, smaller where a line is wider than its tick's share of the axis (~16 characters
+    of 8-point type an inch), never under 5 points."""
+    broken = [re.sub(r",\s*", ",\n", label.replace(" (", "\n(")) for label in labels]
+    widest = max((len(line) for label in broken for line in label.split("\n")), default=1)
+    fits = 16.0 * 8.0 / fontsize * axis_inches / max(len(labels), 1)
+    return broken, max(5.0, min(fontsize, fontsize * fits / widest))
 
 
 def _blocks(fig: Figure, n_blocks: int, rows_per_block: int, cols: int, labels: Sequence[str]):

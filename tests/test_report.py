@@ -750,3 +750,23 @@ def test_a_block_label_too_long_for_the_figure_gets_smaller_type():
     short, long = (sub._suptitle for sub in fig.subfigs)
     assert short.get_fontsize() == 10
     assert long.get_fontsize() == pytest.approx(10 * 8.0 * 6.2 / 100)
+
+
+def test_category_labels_break_at_parenthesis_and_commas_and_shrink_to_fit():
+    from hmepol_cli.plots import category_labels
+
+    labels, size = category_labels(["Mepol", "HMepol (algo.adam_reset=null, epochs=200)"], 6.0)
+    assert labels == ["Mepol", "HMepol\n(algo.adam_reset=null,\nepochs=200)"]
+    assert size == 8.0  # 3 inches a tick: 48 characters of 8-point type, the widest line is 22
+    _, size = category_labels(["x" * 20] * 6, 6.0)
+    assert size == pytest.approx(8.0 * 16.0 / 20)  # one inch a tick: 16 characters of 20
+    _, size = category_labels(["x" * 400] * 6, 6.0)
+    assert size == 5.0
+
+
+def test_group_labels_read_as_command_line_overrides():
+    from hmepol_cli.report.runs import override_text
+
+    assert [override_text(v) for v in (None, True, False, 0.4, "epoch")] == [
+        "null", "true", "false", "0.4", "epoch",
+    ]  # fmt: skip

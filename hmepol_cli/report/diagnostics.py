@@ -107,7 +107,7 @@ MARKERS = ("o", "^", "s", "D", "v", "P")
 def draw_diagnostics(groups: list[Group], styles: dict, title: str, path: Path) -> Path:
     """Four panels: the KL ratio over epochs, drops per seed, the fall of entropy against the
     ratio of the update before it, and the share of actions at the clip."""
-    from hmepol_cli.plots import new_figure, save
+    from hmepol_cli.plots import category_labels, new_figure, save
 
     table = drop_table(groups)
     fig = new_figure(12.0, 8.0)
@@ -142,9 +142,9 @@ def draw_diagnostics(groups: list[Group], styles: dict, title: str, path: Path) 
     ratio_ax.set_xlabel("epoch")
     ratio_ax.set_ylabel("exact KL / one-step KL (accepted update)")
     ratio_ax.set_title("Exact against one-step KL (thin: seeds; thick: median)", fontsize=10)
-    drops_ax.set_xticks(
-        range(len(groups)), [g.label.replace(" (", "\n(") for g in groups], fontsize=8
-    )
+    width = drops_ax.get_position().width * fig.get_figwidth()
+    labels, size = category_labels([g.label for g in groups], width)
+    drops_ax.set_xticks(range(len(groups)), labels, fontsize=size)
     drops_ax.set_ylabel(f"drops > {DROP_NATS:g} nat from epoch {DROP_FROM}")
     drops_ax.set_title("Single-epoch drops per seed (dots; bar: mean)", fontsize=10)
     scatter_ax.set_xscale("log")

@@ -630,8 +630,21 @@ def label_groups(groups: list[Group]) -> None:
             runs = [g.first for g in same]
             keys = [k for k in varying_keys(runs) if k not in ("env.name", "algo.name", "wind")]
             for group in same:
-                parts = [f"{SHORT_NAMES.get(k, k)}={group.first.config.get(k)}" for k in keys]
+                parts = [
+                    f"{SHORT_NAMES.get(k, k)}={override_text(group.first.config.get(k))}"
+                    for k in keys
+                ]
                 group.label = algo_label(algo) + (f" ({', '.join(parts)})" if parts else "")
+
+
+def override_text(value) -> str:
+    """A config value as it is written on the command line (``null``, ``true``), so that a
+    label reads as the override that makes the group."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(value)
 
 
 def algo_label(algo: str) -> str:
