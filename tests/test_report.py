@@ -252,6 +252,15 @@ def test_label_names_key_that_is_not_fixed_by_algorithm(tmp_path):
     assert sorted(g.label for g in groups) == ["HMepol (policy=gru)", "HMepol (policy=recursive)"]
 
 
+def test_a_run_continued_for_more_epochs_groups_by_the_epochs_it_was_taken_to(tmp_path):
+    write_run(tmp_path, algo="hmepol", seed=0, epochs=40, name="a")
+    continued = write_run(tmp_path, algo="hmepol", seed=1, epochs=20, epochs_done=40, name="b")
+    meta = json.loads((continued / "run.json").read_text())
+    (continued / "run.json").write_text(json.dumps({**meta, "epochs": 40}))  # resume epochs=40
+    groups = group_runs(discover_runs(tmp_path)[0])
+    assert [(g.label, g.seeds) for g in groups] == [("HMepol", [0, 1])]
+
+
 def test_wind_interpolation_and_top_level_wind_count_once(tmp_path):
     for wind in (0.05, 0.4):
         write_run(tmp_path, env="slope", algo="mepol", wind=wind)

@@ -482,6 +482,10 @@ def load_run(path: Path) -> Run:
             "policy.name": meta.get("policy"),
             "seed": meta.get("seed"),
         }
+    if isinstance(meta.get("epochs"), int):
+        # A run continued with `resume=<run> epochs=N` keeps the config.yaml it started with;
+        # run.json holds the epochs it was taken to.
+        config = {**config, "epochs": meta["epochs"]}
     if not (path / FINETUNE_CSV).exists():
         # Keys added to the schema after a run was made take their defaults, so old and new runs
         # of the same settings group together.
