@@ -115,6 +115,10 @@ def test_thesis_presets_carry_table_values(hydra_compose):
     assert exact.algo.trust_region == "exact"
     exact.algo.trust_region = cfg.algo.trust_region
     assert exact == cfg  # ours: the thesis preset with only the trust region changed
+    reset = hydra_compose(config_name="config", overrides=["experiment=corridor_hmepol_adam_reset"])
+    assert reset.algo.adam_reset == "epoch"
+    reset.algo.adam_reset = cfg.algo.adam_reset
+    assert reset == cfg  # ours: the thesis preset with only Adam's reset changed
     cfg = hydra_compose(config_name="config", overrides=["experiment=multigrid_alphamepol"])
     assert (cfg.algo.objective, cfg.algo.alpha, cfg.env.name) == ("cvar", 0.1, "multigrid")
 
