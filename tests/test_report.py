@@ -252,6 +252,20 @@ def test_label_names_key_that_is_not_fixed_by_algorithm(tmp_path):
     assert sorted(g.label for g in groups) == ["HMepol (policy=gru)", "HMepol (policy=recursive)"]
 
 
+def test_labels_name_only_where_a_group_departs_from_the_main_experiment(tmp_path):
+    for seed in (0, 1):
+        write_run(tmp_path, algo="hmepol", policy="recursive", seed=seed, name=f"main{seed}")
+        write_run(tmp_path, algo="hmepol", policy="gru", seed=seed, name=f"gru{seed}")
+        write_run(
+            tmp_path, algo="hmepol", policy="recursive", seed=seed, name=f"k{seed}",
+            extra_config="estimator:\n  k: 10\n",
+        )  # fmt: skip
+    groups = group_runs(discover_runs(tmp_path)[0])
+    assert sorted(g.label for g in groups) == [
+        "HMepol", "HMepol (estimator.k=10)", "HMepol (policy=gru)",
+    ]  # fmt: skip
+
+
 def test_a_run_continued_for_more_epochs_groups_by_the_epochs_it_was_taken_to(tmp_path):
     write_run(tmp_path, algo="hmepol", seed=0, epochs=40, name="a")
     continued = write_run(tmp_path, algo="hmepol", seed=1, epochs=20, epochs_done=40, name="b")

@@ -19,6 +19,7 @@ import json
 import math
 import re
 import warnings
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -623,9 +624,11 @@ def group_runs(runs: list[Run]) -> list[Group]:
 
 
 def label_groups(groups: list[Group]) -> None:
-    """Name each group inside its env: the algorithm, plus the keys that tell apart groups of
-    the same algorithm ("HMepol (policy=gru)"). Keys fixed by the algorithm (HMepol always with
-    the recursive policy, alpha-Mepol always with CVaR) are left out of the label.
+    """Name each group inside its env: the algorithm, plus the settings in which it departs
+    from the algorithm's main experiment ("HMepol (policy=gru)"). A key's main value is the one
+    most runs of the algorithm share; where two values tie, every group names its value. Keys
+    fixed by the algorithm (HMepol always with the recursive policy, alpha-Mepol always with
+    CVaR) are left out of the label.
     """
     for env in {g.env for g in groups}:
         members = [g for g in groups if g.env == env]
@@ -633,12 +636,21 @@ def label_groups(groups: list[Group]) -> None:
             same = [g for g in members if g.algo == algo]
             runs = [g.first for g in same]
             keys = [k for k in varying_keys(runs) if k not in ("env.name", "algo.name", "wind")]
+            main = {k: _main_value(same, k) for k in keys}
             for group in same:
                 parts = [
                     f"{SHORT_NAMES.get(k, k)}={override_text(group.first.config.get(k))}"
                     for k in keys
+                    if main[k] is None or repr(group.first.config.get(k)) != main[k]
                 ]
                 group.label = algo_label(algo) + (f" ({', '.join(parts)})" if parts else "")
+
+
+def _main_value(groups: list[Group], key: str) -> str | None:
+    """The repr of the value of ``key`` that most of these groups' runs share; None on a tie."""
+    counts = Counter(repr(g.first.config.get(key)) for g in groups for _ in g.runs)
+    (top, n), *rest = counts.most_common()
+    return None if rest and rest[0][1] == n else top
 
 
 def override_text(value) -> str:
