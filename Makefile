@@ -62,7 +62,7 @@ reproduce-quick-multigrid:
 results:
 	hmepol report docs/results/full docs/results/quick --out docs/results
 	hmepol report docs/results/collapse/n20-* --out docs/results/collapse/report-n20
-	hmepol report docs/results/collapse/n100-gradient docs/results/collapse/n100-exact docs/results/collapse/n100-mepol --out docs/results/collapse/report-n100
+	hmepol report docs/results/collapse/n100-gradient docs/results/collapse/n100-exact docs/results/collapse/n100-adam docs/results/collapse/n100-bptt-full docs/results/collapse/n100-mepol --out docs/results/collapse/report-n100
 	hmepol report docs/results/collapse/finetune-epoch100 --out docs/results/collapse/report-finetune-epoch100
 	hmepol report docs/results/collapse/finetune-epoch75 --out docs/results/collapse/report-finetune-epoch75
 	hmepol report docs/results/precision --out docs/results/precision/report
