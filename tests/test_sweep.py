@@ -58,7 +58,8 @@ def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again
     assert "Joblib.Parallel" not in proc.stdout + proc.stderr
     assert "\r" not in proc.stderr
     finished = [line for line in proc.stdout.splitlines() if " finished: corridor/" in line]
-    assert len(finished) == 4 and all("H=" in line and " -> " in line for line in finished)
+    assert len(finished) == 4, proc.stdout[-4000:]
+    assert all("H=" in line and " -> " in line for line in finished)
     again = sweep(tmp_path, "env=corridor", "wind=0.05,0.4", "seed=0,1")
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("already finished") == 4
