@@ -338,6 +338,15 @@ def _set_threads(cfg: DictConfig) -> None:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // n_jobs))
 
 
+def say(line: str, stream=None) -> None:
+    """One line to stdout in one write: parallel jobs share the stream, and with
+    PYTHONUNBUFFERED ``print`` writes the text and its newline apart, so two jobs' lines can
+    join into one."""
+    stream = sys.stdout if stream is None else stream
+    stream.write(line + "\n")
+    stream.flush()
+
+
 def _finished_line(run_dir: Path, seconds: float) -> str:
     """'run written to DIR' with, in a parallel sweep, what a person watching wants to know."""
     if _parallel_jobs() <= 1:
@@ -457,7 +466,7 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
                 and info.get("status") == "finished"
                 and info.get("epochs_done", 0) >= cfg.epochs
             ):
-                print(f"hmepol: {run_dir} already finished ({cfg.epochs} epochs); skipped")
+                say(f"hmepol: {run_dir} already finished ({cfg.epochs} epochs); skipped")
                 continue
             resuming = True  # an interrupted (or failed) job continues where it stopped
         todo.append((cfg, run_dir))
@@ -467,7 +476,7 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
             for cfg, _ in todo:
                 cfg.progress = False
         for _, run_dir in todo:
-            print(f"hmepol: training into {run_dir}", flush=True)
+            say(f"hmepol: training into {run_dir}")
         started = time.monotonic()
         trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
         try:
@@ -483,7 +492,7 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
             ) from None
         failures = trainer.failures
         for run_dir in (d for _, d in todo if d not in failures):
-            print(_finished_line(run_dir, time.monotonic() - started), flush=True)
+            say(_finished_line(run_dir, time.monotonic() - started))
         if failures:
             raise RunFailure(
                 "; ".join(f"{run_dir}: {reason}" for run_dir, reason in failures.items())

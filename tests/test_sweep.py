@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -34,6 +35,8 @@ def sweep(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
         capture_output=True,
         text=True,
         timeout=600,
+        # Unbuffered, as on CI: each job's lines must reach the shared pipe whole.
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
 
 
@@ -41,6 +44,24 @@ def runs(root: Path) -> dict[Path, OmegaConf]:
     return {
         p.parent: OmegaConf.load(p) for p in root.rglob("config.yaml") if p.parent.name != ".hydra"
     }
+
+
+def test_a_job_line_reaches_the_shared_stream_in_one_write():
+    from hmepol_cli.cli import say
+
+    class Recorder:
+        def __init__(self):
+            self.writes = []
+
+        def write(self, text):
+            self.writes.append(text)
+
+        def flush(self):
+            pass
+
+    stream = Recorder()
+    say("hmepol: job 3 finished", stream)
+    assert stream.writes == ["hmepol: job 3 finished\n"]  # print would write the newline apart
 
 
 @pytest.mark.slow
