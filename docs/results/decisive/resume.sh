@@ -1,0 +1,133 @@
+#!/usr/bin/env bash
+# The decisive experiment's runs (PREREGISTRATION.md beside this file): start, resume, save.
+#
+#   docs/results/decisive/resume.sh start    # start, or resume, every chain of runs, in the background
+#   docs/results/decisive/resume.sh status   # epochs done per run, and which chains are running
+#   docs/results/decisive/resume.sh save     # copy the runs' small files and resume kits here
+#
+# The runs use the pre-registered commit (the one that added PREREGISTRATION.md), from a
+# worktree of it ($DECISIVE_TREE, default: ../decisive beside this checkout) with a virtual
+# environment of its own, never the tree being edited. On a fresh machine `start` rebuilds the
+# worktree and restores every unfinished run directory from the resume kit `save` left here
+# (resume/: the last checkpoint, batches.csv and steps.csv exactly as the run wrote them), so
+# the re-run sweeps continue each run where its checkpoint stopped; finished runs are skipped.
+set -euo pipefail
+
+HERE=$(cd "$(dirname "$0")" && pwd)
+MAIN=$(git -C "$HERE" rev-parse --show-toplevel)
+COMMIT=$(git -C "$MAIN" log --diff-filter=A --format=%H -- docs/results/decisive/PREREGISTRATION.md | tail -n 1)
+TREE=${DECISIVE_TREE:-$(dirname "$MAIN")/decisive}
+OUT=$TREE/outputs/decisive
+PY=$TREE/.venv/bin/python
+TORCH_VERSION=${TORCH_VERSION:-2.13.0}
+
+# One chain of sweeps per core, each stage a population (PREREGISTRATION.md, section 2).
+COMMON="progress=false diagnostics=true threads=1 checkpoint.keep_every=50 hydra/launcher=population"
+CHAIN_A=(
+  "mepol experiment=corridor_mepol seed=0,1,2,3"
+  "mepol experiment=corridor_mepol seed=4,5,6,7"
+  "hmepol experiment=corridor_hmepol seed=0,1,2,3"
+  "hmepol experiment=corridor_hmepol seed=4,5,6,7"
+)
+CHAIN_B=(
+  "exact experiment=corridor_hmepol_exact seed=0,1,2,3"
+  "exact experiment=corridor_hmepol_exact seed=4,5,6,7"
+)
+CHAIN_M=(
+  "multigrid experiment=quick_multigrid algo=alphamepol,hmepol seed=0,1,2,3"
+)
+
+worktree() {
+  [ -n "$COMMIT" ] || { echo "PREREGISTRATION.md is not committed yet" >&2; exit 1; }
+  if [ ! -e "$TREE/.git" ]; then
+    git -C "$MAIN" worktree prune
+    git -C "$MAIN" worktree add --detach "$TREE" "$COMMIT"
+  fi
+  [ "$(git -C "$TREE" rev-parse HEAD)" = "$COMMIT" ] || {
+    echo "$TREE is not at the pre-registered commit $COMMIT" >&2; exit 1; }
+  if [ ! -x "$TREE/.venv/bin/hmepol" ]; then
+    python3 -m venv "$TREE/.venv"
+    "$PY" -m pip install --quiet "torch==$TORCH_VERSION"
+    "$PY" -m pip install --quiet -e "$TREE"
+  fi
+}
+
+# A run directory saved here but absent (or behind) in the worktree: rebuilt from its resume kit.
+restore() {
+  local kit run target
+  for kit in "$HERE"/*/*/resume; do
+    [ -f "$kit/last.pt" ] || continue
+    run=$(dirname "$kit")
+    target=$OUT/${run#"$HERE"/}
+    [ -f "$target/checkpoints/last.pt" ] && continue
+    echo "restoring $target from its resume kit"
+    mkdir -p "$target/checkpoints"
+    cp "$run/config.yaml" "$run/run.json" "$run/epochs.csv" "$target/"
+    cp "$kit/last.pt" "$target/checkpoints/last.pt"
+    gunzip -c "$kit/batches.csv.gz" > "$target/batches.csv"
+    gunzip -c "$run/steps.csv.gz" > "$target/steps.csv"
+    [ -f "$kit/commands.log" ] && cp "$kit/commands.log" "$target/"
+  done
+}
+
+chain() {  # name, then its stages: one background shell runs them one after the other
+  local name=$1; shift
+  if [ -f "$OUT/$name.pid" ] && kill -0 "$(cat "$OUT/$name.pid")" 2>/dev/null; then
+    echo "chain $name is running (pid $(cat "$OUT/$name.pid"))"; return
+  fi
+  local script="cd '$TREE'"
+  local stage arm overrides
+  for stage in "$@"; do
+    arm=${stage%% *}; overrides=${stage#* }
+    script+=" && nice -n 19 .venv/bin/hmepol sweep $overrides $COMMON hydra.sweep.dir=$OUT/$arm"
+  done
+  mkdir -p "$OUT"
+  nohup bash -c "$script" >> "$OUT/$name.log" 2>&1 &
+  echo $! > "$OUT/$name.pid"
+  echo "chain $name started (pid $!), log $OUT/$name.log"
+}
+
+status() {
+  local run
+  for run in "$OUT"/*/*/; do
+    [ -f "$run/epochs.csv" ] || continue
+    printf '%-70s %4s epochs  %s\n' "${run#"$OUT"/}" "$(($(wc -l < "$run/epochs.csv") - 1))" \
+      "$("$PY" -c 'import json,sys; print(json.load(open(sys.argv[1]))["status"])' "$run/run.json")"
+  done
+  for name in A B M; do
+    if [ -f "$OUT/$name.pid" ] && kill -0 "$(cat "$OUT/$name.pid")" 2>/dev/null; then
+      echo "chain $name running"; else echo "chain $name not running"; fi
+  done
+}
+
+# The checkpoint is copied first, the tables after it: they then hold at least the epochs the
+# checkpoint covers (resume drops the rows past it). Finished runs need no kit.
+save() {
+  local run arm dest
+  for run in "$OUT"/*/*/; do
+    run=${run%/}
+    [ -f "$run/run.json" ] || continue
+    dest=$HERE/${run#"$OUT"/}
+    if grep -q '"status": "finished"' "$run/run.json"; then
+      rm -rf "$dest/resume"
+    elif [ -f "$run/checkpoints/last.pt" ]; then
+      mkdir -p "$dest/resume"
+      cp "$run/checkpoints/last.pt" "$dest/resume/last.pt.tmp"
+      gzip -c -n "$run/batches.csv" > "$dest/resume/batches.csv.gz.tmp"
+      cp "$run/commands.log" "$dest/resume/commands.log.tmp"
+      for f in last.pt batches.csv.gz commands.log; do mv "$dest/resume/$f.tmp" "$dest/resume/$f"; done
+    fi
+  done
+  for arm in "$OUT"/*/; do
+    "$PY" -m hmepol_cli.report.export "$arm" "$HERE/$(basename "$arm")"
+  done
+}
+
+case "${1:-}" in
+  start)
+    worktree; restore
+    chain A "${CHAIN_A[@]}"; chain B "${CHAIN_B[@]}"; chain M "${CHAIN_M[@]}" ;;
+  status) status ;;
+  save) save ;;
+  *) echo "usage: $0 start | status | save" >&2; exit 2 ;;
+esac
