@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import platform
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
+
+from hmepol_cli.hardware import describe_cpu
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:
@@ -88,10 +88,6 @@ def brute_force_seconds(particles: torch.Tensor, k: int, batches: int) -> tuple[
 
 
 def cpu_name() -> str:
-    """The processor's model name (Linux), else what the platform module knows."""
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
+    """The processor: model, torch's vector capability, bfloat16 units, cores (a speed is
+    a claim only beside the CPU it was measured on)."""
+    return describe_cpu()

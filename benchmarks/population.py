@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
             if "separate_s" in row:
                 row["speedup"] = row["separate_s"] / row["epoch_s"]
             print(json.dumps(row), flush=True)
-    device = torch.cuda.get_device_name() if gpu else f"{cpu_name()}, {os.cpu_count()} cores"
+    device = torch.cuda.get_device_name() if gpu else cpu_name()
     meta = {
         "device": device,
         "device_kind": args.device,

@@ -29,6 +29,7 @@ from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 
+from benchmarks.measure import cpu_name  # noqa: E402
 from benchmarks.run import thesis_config  # noqa: E402
 from hmepol_cli import estimators, mepol  # noqa: E402
 from hmepol_cli.rollout import Rollout, collect, draw_configurations  # noqa: E402
@@ -157,6 +158,8 @@ def validate_preset(preset: str, state: str, args: argparse.Namespace, work: Pat
 
 def markdown(rows: list[dict], args: argparse.Namespace) -> str:
     lines = [
+        f"Machine: {cpu_name()}, torch {torch.__version__}.",
+        "",
         f"Identical particles: one float64 rollout per preset and policy state, "
         f"{args.trajectories} trajectories x 400 steps; float64 neighbour sets shared.",
         "",

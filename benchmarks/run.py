@@ -47,6 +47,7 @@ from hmepol_cli import estimators, mepol  # noqa: E402
 from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
 from hmepol_cli.config import validate  # noqa: E402
 from hmepol_cli.envs import make_world  # noqa: E402
+from hmepol_cli.precision import bf16_runs_fast_here  # noqa: E402
 from hmepol_cli.rollout import collect, draw_configurations  # noqa: E402
 from hmepol_cli.seeding import keep_freed_memory  # noqa: E402
 from hmepol_cli.trainer import Trainer  # noqa: E402
@@ -207,9 +208,18 @@ def main(argv: list[str] | None = None) -> None:
         "--override", nargs="*", default=[], help="extra Hydra overrides (smoke runs)"
     )
     parser.add_argument(
-        "--precisions", nargs="+", default=["float32", "bf16"], choices=("float32", "bf16")
+        "--precisions",
+        nargs="+",
+        default=None,
+        choices=("float32", "bf16"),
+        help="default: float32, and bf16 where the CPU has bfloat16 units (asked for by name, "
+        "bf16 is measured anyway: the slow path's cost)",
     )
     args = parser.parse_args(argv)
+    if args.precisions is None:
+        args.precisions = ["float32", "bf16"] if bf16_runs_fast_here("cpu") else ["float32"]
+        if "bf16" not in args.precisions:
+            print(f"bf16 not measured: {cpu_name()} (--precisions float32 bf16 measures it)")
     if args.threads:
         torch.set_num_threads(args.threads)
     start, load_before = time.perf_counter(), os.getloadavg()
@@ -227,7 +237,7 @@ def main(argv: list[str] | None = None) -> None:
                 print(f"{rows[-1].label}: epoch {rows[-1].epoch_s:.1f} s", flush=True)
         check = dtype_check(args, Path(tmp))
     meta = {
-        "machine": f"{cpu_name()}, {os.cpu_count()} cores",
+        "machine": cpu_name(),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),

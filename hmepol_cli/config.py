@@ -163,8 +163,9 @@ class Config:
     # GPU's free memory on a GPU); chunks change no number, only memory and speed.
     chunk_members: int = 0
     device: str = "cpu"  # cpu | cuda | auto
-    # float32 | float64 | bf16 (the hidden layers' products in bfloat16, CPU or GPU) | tf32
-    # (TF32 products, GPU only); hmepol_cli/precision.py says where each applies
+    # float32 | float64 | bf16 (the hidden layers' products in bfloat16; a CPU needs bfloat16
+    # units) | tf32 (TF32 products, GPU only) | auto (bf16 where the device has bfloat16
+    # arithmetic and it measures faster, else float32); hmepol_cli/precision.py says more
     precision: str = "float32"
     vmap: str = "auto"  # population calls: auto (vmap on cuda, a loop on cpu) | on | off
     cuda_graphs: bool = True  # on a GPU, replay each rollout's steps as one captured CUDA graph
@@ -252,11 +253,21 @@ def check_device(value: str) -> None:
 def check_precision(value: str, device: str) -> None:
     import torch
 
-    _one_of("precision", value, tuple(PRECISIONS))
+    from hmepol_cli import hardware
+    from hmepol_cli.precision import bf16_runs_fast_here
+
+    _one_of("precision", value, (*PRECISIONS, "auto"))
     on_cpu = device == "cpu" or (device == "auto" and not torch.cuda.is_available())
-    if PRECISIONS[value].gpu_only and on_cpu:
+    if value != "auto" and PRECISIONS[value].gpu_only and on_cpu:
         raise ConfigError(
-            f"precision={value!r} is a GPU precision; on a CPU choose float32, float64 or bf16"
+            f"precision={value!r} is a GPU precision; on a CPU choose float32, float64, bf16 "
+            "or auto"
+        )
+    if value == "bf16" and on_cpu and not bf16_runs_fast_here("cpu"):
+        raise ConfigError(
+            "precision='bf16' needs a CPU with bfloat16 units (AVX-512 BF16, AMX or Arm BF16), "
+            f"and this one has none: {hardware.describe_cpu()}; its bfloat16 products run on a "
+            "slow path (~10x slower than float32): use precision=float32 (or precision=auto)"
         )
 
 

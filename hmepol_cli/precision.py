@@ -6,7 +6,8 @@ those are the hidden layers' (300, 300) matrix products. ``precision`` chooses h
 - ``float32`` (default): everything in float32, exact float32 products on a GPU;
 - ``float64``: everything in float64 (the public reference's precision);
 - ``bf16``: the hidden layers' products, forward and backward, in bfloat16 (float32
-  accumulation) through ``torch.autocast``, on a CPU with AVX-512 BF16 or a GPU; weights,
+  accumulation) through ``torch.autocast``, on a CPU with bfloat16 units (AVX-512 BF16, AMX;
+  a CPU without them is refused: :mod:`hmepol_cli.hardware`) or a GPU; weights,
   particles, Adam's state and the layer that gives the action mean stay float32
   (:class:`hmepol_cli.policies.base.OutputLinear`), so the likelihoods, the cumulative
   log-ratios, the importance weights, the KL and the kNN volumes are computed from float32
@@ -16,7 +17,10 @@ those are the hidden layers' (300, 300) matrix products. ``precision`` chooses h
   lowered at ``bptt = 1``, where h'_t is computed once from the stored h'_{t-1}. Rollouts act
   in float32;
 - ``tf32``: float32 storage, TF32 matrix products on a GPU (``torch.set_float32_matmul_precision
-  ("high")``); a GPU precision only.
+  ("high")``); a GPU precision only;
+- ``auto``: bf16 where the device has bfloat16 units and a hidden layer's product measured at
+  least ``AUTO_MARGIN`` times faster in bf16 than in float32, float32 everywhere else. The
+  choice is the machine's: a run resumed on another machine may continue in the other one.
 
 Whatever the precision, the likelihoods the sampling policy is compared with are computed the
 same way as the target's (:class:`hmepol_cli.mepol.Surrogate`), so that at theta' = theta the
@@ -27,9 +31,16 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
+import logging
 from dataclasses import dataclass
 
 import torch
+
+from hmepol_cli import hardware
+
+log = logging.getLogger("hmepol")
+AUTO_MARGIN = 1.3  # precision=auto: bf16 only where its products are this many times faster
 
 _LOWERED_HISTORY = contextvars.ContextVar("lowered_history", default=False)
 
@@ -74,11 +85,38 @@ PRECISIONS: dict[str, Precision] = {
 
 
 def precision_of(cfg) -> Precision:
-    """The precision of a run's config; a run started before ``precision`` existed said it with
-    ``dtype`` (float32 | float64) and ``matmul_precision`` (high: TF32)."""
+    """The precision of a run's config (``auto`` resolved on this machine); a run started before
+    ``precision`` existed said it with ``dtype`` (float32 | float64) and ``matmul_precision``
+    (high: TF32)."""
     name = cfg.get("precision")
     if name is None:
         name = str(cfg.get("dtype", "float32"))
         if name == "float32" and cfg.get("matmul_precision", "highest") != "highest":
             name = "tf32"
+    if name == "auto":
+        return auto_precision(_device_type(str(cfg.get("device", "cpu"))))
     return PRECISIONS[str(name)]
+
+
+def _device_type(device: str) -> str:
+    return "cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu"
+
+
+def bf16_runs_fast_here(device_type: str) -> bool:
+    """Whether the device has bfloat16 arithmetic (a CPU's units, a GPU's support)."""
+    if device_type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    return bool(hardware.bfloat16_units())
+
+
+@functools.cache
+def auto_precision(device_type: str) -> Precision:
+    """precision=auto on this device: bf16 where it has bfloat16 arithmetic and the product of
+    a hidden layer measured at least AUTO_MARGIN times faster, else float32."""
+    if not bf16_runs_fast_here(device_type):
+        log.info("precision=auto: float32 (no bfloat16 arithmetic on %s)", device_type)
+        return PRECISIONS["float32"]
+    speedup = hardware.bf16_speedup(device_type)
+    chosen = "bf16" if speedup >= AUTO_MARGIN else "float32"
+    log.info("precision=auto: %s (bf16 products measured %.2fx float32's)", chosen, speedup)
+    return PRECISIONS[chosen]
