@@ -10,7 +10,9 @@ and the commit after and comparing the two outputs line by line::
 Each line is ``<case> <sha256 of the numbers>``: every column of epochs.csv and batches.csv but
 the wall-clock ones, and the final policy weights, at full precision. Digests are equal only on
 the same machine and torch build (the same seed and config give the same numbers there).
-``extra`` overrides apply to every case (e.g. ``env.edge=mirror``).
+``extra`` overrides apply to every case (e.g. ``env.edge=mirror``); ``--only gym`` runs the
+cases whose label holds "gym". Run it from the repository root (the Gymnasium cases import
+tests/gym_toy.py).
 """
 
 from __future__ import annotations
@@ -118,38 +120,59 @@ def finetune_digest(init: Path | None, workdir: Path, extra: list[str]) -> str:
     return hashlib.sha256(_numbers(rows.drop(columns=["init"]))).hexdigest()[:16]
 
 
+# Gymnasium worlds (tests/gym_toy.py's walker): episodes that end early (|x| >= wall), whose
+# particles after the end take no part in the estimate, and episodes that never end.
+GYM = ["env=gym", "env.id=tests.gym_toy:hmepol-test/Walk-v0", "env.features=[0]"]
+GYM_CASES = {
+    "ends": "env.configs=[{wall:0.3},{wall:0.6,drift:0.05}]",
+    "never-ends": "env.configs=[{drift:0.0},{drift:0.05}]",
+}
+
+
+def cases(quick: bool, extra: list[str]) -> list[tuple[str, list[str], tuple[int, ...]]]:
+    """Every case: (label, overrides, seeds)."""
+    out = []
+    for world in WORLDS:
+        for algo in ALGOS:
+            for policy in POLICIES if not quick else ("markov", "recursive"):
+                overrides = [f"env={world}", f"algo={algo}", f"policy={policy}", *extra]
+                out.append((f"train {world} {algo} {policy}", overrides, (0,)))
+    for world in WORLDS:
+        for algo in ALGOS:
+            for policy in ("markov", "recursive"):
+                overrides = [f"env={world}", f"algo={algo}", f"policy={policy}", *STRESS, *extra]
+                out.append((f"stress {world} {algo} {policy}", overrides, (0,)))
+    for name, configs in GYM_CASES.items():
+        for algo in ("mepol", "hmepol"):
+            overrides = [*GYM, configs, f"algo={algo}", "estimator.k=3", *extra]
+            out.append((f"gym {name} {algo}", overrides, (0,)))
+    overrides = ["env=slope", "algo=hmepol", *STRESS, *extra]
+    out.append(("population slope hmepol recursive", overrides, (0, 1, 2)))
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("extra", nargs="*", help="overrides applied to every training case")
     parser.add_argument("--quick", action="store_true", help="one policy per algorithm")
     parser.add_argument("--drop", default="", help="columns to leave out, comma-separated")
+    parser.add_argument("--only", default="", help="only the cases whose label holds this text")
     ns = parser.parse_args(argv)
     DROPPED.extend(c for c in ns.drop.split(",") if c)
     torch.set_num_threads(1)
-    cases = [
-        (world, algo, policy)
-        for world in WORLDS
-        for algo in ALGOS
-        for policy in (POLICIES if not ns.quick else ("markov", "recursive"))
-    ]
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        for i, (world, algo, policy) in enumerate(cases):
-            overrides = [f"env={world}", f"algo={algo}", f"policy={policy}", *ns.extra]
-            digest = train_digest(overrides, root / f"case{i}")
-            print(f"train {world} {algo} {policy} {digest}", flush=True)
-        for world in WORLDS:
-            for algo in ALGOS:
-                for policy in ("markov", "recursive"):
-                    overrides = [f"env={world}", f"algo={algo}", f"policy={policy}", *STRESS]
-                    digest = train_digest([*overrides, *ns.extra], root / f"{world}{algo}{policy}")
-                    print(f"stress {world} {algo} {policy} {digest}", flush=True)
-        overrides = ["env=slope", "algo=hmepol", *STRESS, *ns.extra]
-        digest = train_digest(overrides, root / "population", seeds=(0, 1, 2))
-        print(f"population slope hmepol recursive {digest}", flush=True)
+        for i, (label, overrides, seeds) in enumerate(cases(ns.quick, ns.extra)):
+            if ns.only in label:
+                print(f"{label} {train_digest(overrides, root / f'case{i}', seeds)}", flush=True)
         init = root / "case0" / "seed0"  # slope, mepol, markov
-        print(f"finetune pretrained {finetune_digest(init, root / 'ft0', ns.extra)}", flush=True)
-        print(f"finetune scratch {finetune_digest(None, root / 'ft1', [])}", flush=True)
+        if ns.only in "finetune pretrained":
+            if not init.exists():
+                train_digest(cases(True, ns.extra)[0][1], root / "case0")
+            digest = finetune_digest(init, root / "ft0", ns.extra)
+            print(f"finetune pretrained {digest}", flush=True)
+        if ns.only in "finetune scratch":
+            print(f"finetune scratch {finetune_digest(None, root / 'ft1', [])}", flush=True)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,11 @@ off-policy iteration, since the particles do not move while the policy is update
 Neighbour convention (public Mepol code): N_i^k holds particle i itself and its k - 1 nearest
 other particles, while R_i is the distance to the k-th nearest *other* particle. With uniform
 weights w = 1/P, W_i = k/P and eq. 2.7 reduces exactly to eq. 2.6.
+
+Live particles: where an episode ends before T (a Gymnasium world), the steps after its end
+produce no state; the reference drops them (its ``real_traj_lengths``). Here a mini-batch keeps
+its shape and ``live`` (M, P) marks the particles that exist: the others are no one's neighbour,
+have no neighbours, weigh nothing, and P in eqs. 2.6-2.8 is the number of live particles.
 """
 
 from __future__ import annotations
@@ -29,40 +34,79 @@ class Neighbours:
     indices: torch.Tensor  # (M, P, k) long: i itself, then its k-1 nearest others (N_i^k)
     radius: torch.Tensor  # (M, P): distance to the k-th nearest other particle (R_i)
     dim: int  # p, the particles' dimension
+    # (M, P) bool: the particles that exist (None: all). A particle that does not is listed as
+    # its own k neighbours at radius 1, so every term stays finite before it is masked out.
+    live: torch.Tensor | None = None
 
     @property
     def k(self) -> int:
         return self.indices.shape[-1]
 
+    def count(self) -> torch.Tensor | float:
+        """P, the live particles of each mini-batch: (M,), or a number when all are live."""
+        if self.live is None:
+            return float(self.radius.shape[-1])
+        return self.live.sum(dim=-1).to(self.radius.dtype)
 
-def nearest_neighbours(particles: torch.Tensor, k: int, method: str = "auto") -> Neighbours:
+    def mean(self, values: torch.Tensor) -> torch.Tensor:
+        """The mean of per-particle values (M, P) over each mini-batch's live particles. (M,)"""
+        if self.live is None:
+            return values.mean(dim=-1)
+        return torch.where(self.live, values, torch.zeros_like(values)).sum(-1) / self.count()
+
+
+def nearest_neighbours(
+    particles: torch.Tensor, k: int, method: str = "auto", live: torch.Tensor | None = None
+) -> Neighbours:
     """Search the k nearest other particles of every particle, within its own mini-batch.
 
-    particles (M, P, d). ``method``: "kdtree" (scipy's cKDTree, one mini-batch per thread),
-    "torch" (pairwise distances, chunked; the fast path on a GPU) or "auto" (torch on cuda,
-    kdtree otherwise).
+    particles (M, P, d); ``live`` (M, P) bool: only these are searched and found (None: all).
+    ``method``: "kdtree" (scipy's cKDTree, one mini-batch per thread), "torch" (pairwise
+    distances, chunked; the fast path on a GPU) or "auto" (torch on cuda, kdtree otherwise).
     """
     m, p, d = particles.shape
     if not 0 < k < p:
         raise ValueError(f"k={k} must be in [1, particles per mini-batch - 1 = {p - 1}]")
+    if live is not None:
+        fewest = int(live.sum(dim=-1).min())
+        if fewest <= k:
+            raise ValueError(
+                f"a mini-batch holds only {fewest} live particles (its episodes ended early) "
+                f"and k={k} needs more than k: lower estimator.k or raise algo.batch_size"
+            )
     if method == "auto":
         method = "torch" if particles.device.type == "cuda" else "kdtree"
     if method == "kdtree":
-        idx, dist = _kdtree_search(particles, k)
+        idx, dist = _kdtree_search(particles, k, live)
     elif method == "torch":
-        idx, dist = _torch_search(particles, k)
+        idx, dist = _torch_search(particles, k, live=live)
     else:
         raise ValueError(f"unknown neighbour search {method!r}; choose auto, kdtree or torch")
-    return _split_self(idx, dist, k, d)
+    if live is not None:  # a particle that does not exist: itself k times, at radius 1
+        own = torch.arange(p, device=idx.device).view(1, p, 1).expand_as(idx)
+        idx = torch.where(live[..., None], idx, own)
+        dist = torch.where(live[..., None], dist, torch.ones_like(dist))
+    neighbours = _split_self(idx, dist, k, d)
+    neighbours.live = live
+    return neighbours
 
 
-def _kdtree_search(particles: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _kdtree_search(
+    particles: torch.Tensor, k: int, live: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     points = particles.detach().to("cpu", torch.float64).numpy()
     idx = np.empty(points.shape[:2] + (k + 1,), dtype=np.int64)
     dist = np.empty(points.shape[:2] + (k + 1,), dtype=np.float64)
+    where = None if live is None else [np.flatnonzero(row) for row in live.cpu().numpy()]
 
     def search(j: int) -> None:
-        dist[j], idx[j] = cKDTree(points[j]).query(points[j], k=k + 1)
+        if where is None:
+            dist[j], idx[j] = cKDTree(points[j]).query(points[j], k=k + 1)
+            return
+        own = where[j]  # the live particles, searched among themselves (the rest: filled later)
+        found_dist, found = cKDTree(points[j, own]).query(points[j, own], k=k + 1)
+        dist[j], idx[j] = 1.0, 0
+        dist[j, own], idx[j, own] = found_dist, own[found]
 
     # One mini-batch per thread (the query releases the GIL): with small mini-batches this beats
     # cKDTree's own workers, which start their threads anew for every query. As many threads as
@@ -74,11 +118,11 @@ def _kdtree_search(particles: torch.Tensor, k: int) -> tuple[torch.Tensor, torch
 
 
 def _torch_search(
-    particles: torch.Tensor, k: int, budget: int = 1 << 27
+    particles: torch.Tensor, k: int, budget: int = 1 << 27, live: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Pairwise distances, in pieces of at most ``budget`` entries (0.5 GB in float32): a few
     mini-batches at a time, and a slice of their queries when one mini-batch is too large
-    (80,000 particles)."""
+    (80,000 particles). Particles that are not ``live`` are never found."""
     x = particles.detach()
     m, p, dim = x.shape
     queries_per_piece = max(1, min(p, budget // p))
@@ -90,6 +134,9 @@ def _torch_search(
         for q0 in range(0, p, queries_per_piece):
             queries = xb[:, q0 : q0 + queries_per_piece]
             d = torch.cdist(queries, xb)  # (m', q, P)
+            if live is not None:
+                found = live[b0 : b0 + batches_per_piece, None, :]
+                d = d.masked_fill(~found, math.inf)
             _, idx = d.topk(k + 1, dim=-1, largest=False, sorted=True)
             # cdist's matrix-product shortcut leaves ~1e-4 (float32) between coincident
             # particles, where kdtree says 0: recompute the candidates' distances from differences.
@@ -141,7 +188,11 @@ def floor_share(
     log_unit = (neighbours.dim / 2) * math.log(math.pi) - math.lgamma(neighbours.dim / 2 + 1)
     log_v = neighbours.dim * torch.log(neighbours.radius.clamp_min(TINY)) + log_unit
     at_floor = (log_v <= math.log(eps)).to(torch.float64)
-    return at_floor.mean(dim=-1) if per_batch else at_floor.mean()
+    if per_batch:
+        return neighbours.mean(at_floor)
+    if neighbours.live is None:
+        return at_floor.mean()
+    return at_floor[neighbours.live].mean()
 
 
 def bias_correction(k: int) -> float:
@@ -149,11 +200,18 @@ def bias_correction(k: int) -> float:
     return math.log(k) - float(torch.special.digamma(torch.tensor(float(k), dtype=torch.float64)))
 
 
+def _log_share(neighbours: Neighbours) -> torch.Tensor | float:
+    """log(k / P): a number, or (M, 1) where the mini-batches' live particles differ."""
+    p = neighbours.count()
+    if isinstance(p, float):
+        return math.log(neighbours.k / p)
+    return torch.log(neighbours.k / p)[..., None]
+
+
 def knn_entropy(neighbours: Neighbours, eps: float = 1e-10) -> torch.Tensor:
     """Eq. 2.6, per mini-batch: -(1/P) sum_i log(k / (P V_i)) + log k - psi(k). -> (M,)"""
-    p, k = neighbours.radius.shape[-1], neighbours.k
     log_v = log_ball_volume(neighbours.radius, neighbours.dim, eps)
-    return -(math.log(k / p) - log_v).mean(dim=-1) + bias_correction(k)
+    return -neighbours.mean(_log_share(neighbours) - log_v) + bias_correction(neighbours.k)
 
 
 def neighbourhood_weights(weights: torch.Tensor, neighbours: Neighbours) -> torch.Tensor:
@@ -179,21 +237,25 @@ def iw_entropy(weights: torch.Tensor, neighbours: Neighbours, eps: float = 1e-10
 
 def kl_divergence(weights: torch.Tensor, neighbours: Neighbours) -> torch.Tensor:
     """Eq. 2.8, per mini-batch: (1/P) sum_i log((k/P) / W_i), floored at 0. -> (M,)"""
-    p, k = weights.shape[-1], neighbours.k
     w_sum = neighbourhood_weights(weights, neighbours).clamp_min(TINY)
-    return (math.log(k / p) - torch.log(w_sum)).mean(dim=-1).clamp_min(0.0)
+    return neighbours.mean(_log_share(neighbours) - torch.log(w_sum)).clamp_min(0.0)
 
 
-def importance_weights(log_ratios: torch.Tensor, batch_size: int) -> torch.Tensor:
+def importance_weights(
+    log_ratios: torch.Tensor, batch_size: int, live: torch.Tensor | None = None
+) -> torch.Tensor:
     """Normalised importance weights of the particles of each mini-batch.
 
     log_ratios (N, T): log pi'(a_t | h_t) - log pi(a_t | h_t) of each step. Particle t of a
     trajectory is the state s_{t+1} reached by its first t+1 actions, so its weight is the product
-    of the ratios up to t; weights are normalised over the mini-batch's B trajectories.
+    of the ratios up to t; weights are normalised over the mini-batch's B trajectories, over its
+    ``live`` particles only (N / B, B * T) bool, the others weighing 0 (None: all are live).
     -> (N / B, B * T), in the order of ``particles_by_batch``.
     """
     n, t = log_ratios.shape
     log_w = torch.cumsum(log_ratios, dim=1).reshape(n // batch_size, batch_size * t)
+    if live is not None:
+        log_w = log_w.masked_fill(~live, -math.inf)
     return torch.softmax(log_w, dim=-1)
 
 
@@ -219,9 +281,10 @@ class KNNEstimator:
         """The estimator of an ``estimator`` config group entry (k, eps, neighbours)."""
         return cls(cfg.k, cfg.eps, cfg.neighbours)
 
-    def search(self, particles: torch.Tensor) -> Neighbours:
-        """particles (M, P, d) -> their neighbour sets, within each mini-batch."""
-        return nearest_neighbours(particles, self.k, self.method)
+    def search(self, particles: torch.Tensor, live: torch.Tensor | None = None) -> Neighbours:
+        """particles (M, P, d), ``live`` (M, P) bool or None (all) -> their neighbour sets,
+        within each mini-batch."""
+        return nearest_neighbours(particles, self.k, self.method, live)
 
     def entropy(self, neighbours: Neighbours) -> torch.Tensor:
         """Eq. 2.6 per mini-batch. -> (M,)"""

@@ -158,6 +158,9 @@ class UpdateResult:
     kl_full_precision: float = math.nan
     entropy_iw_full_precision: float = math.nan
     steps: list[StepRecord] = field(default_factory=list)  # every step tried (diagnostics)
+    # What was not finite where no step could mend it (at the sampling policy, or at every
+    # step tried): the member stops (EpochStats.broken)
+    non_finite: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -198,7 +201,7 @@ def epoch(
     configurations = torch.stack(
         [draw_configurations(world, s.trajectories, s.batch_size, g) for g in generators]
     )  # (S', N): one configuration per mini-batch, repeated over its B trajectories
-    selection = None if len(members) == population.size else rows
+    selection = None if list(members) == list(range(population.size)) else rows
     rollout = collect(world, population, selection, configurations, s.horizon, generators,
                       graphs=graphs)  # fmt: skip
     batch_configurations = configurations[:, :: s.batch_size].cpu().numpy()  # (S', M)
@@ -234,7 +237,11 @@ def _update(
     # env.features; the whole position in the 2-D worlds).
     features = world.entropy_features(rollout.particles)
     particles = estimators.particles_by_batch(features.flatten(0, 1), s.batch_size)
-    neighbours = s.estimator.search(particles)  # (S' M, P, k)
+    # Where episodes end early, the steps after an end produce no particle (as the reference).
+    live = None
+    if rollout.alive is not None:
+        live = rollout.alive.flatten(0, 1).reshape(particles.shape[:2])  # (S' M, P)
+    neighbours = s.estimator.search(particles, live)  # (S' M, P, k)
     entropies = s.estimator.entropy(neighbours).view(n, -1)  # (S', M), eq. 2.6
     t2 = time.perf_counter()
     surrogate = Surrogate(population, rollout, neighbours, members, settings)
@@ -270,6 +277,7 @@ def _update(
                 log_std=log_std,
                 clip_share=clip_share,
                 seconds=seconds,
+                broken=list(updates[i].non_finite),
             )
         )
     return stats
@@ -340,7 +348,7 @@ class Surrogate:
         behaviour = self.behaviour.index_select(0, rows)
         nb = _select_batches(self.neighbours, rows, self.batches)
         weights = estimators.importance_weights(
-            _live(target - behaviour, alive).flatten(0, 1), s.batch_size
+            _live(target - behaviour, alive).flatten(0, 1), s.batch_size, nb.live
         )
         entropies = s.estimator.iw_entropy(weights, nb).view(len(rows), -1)  # eq. 2.7
         one_step = s.estimator.kl(weights, nb).view(len(rows), -1).mean(-1)  # eq. 2.8
@@ -368,7 +376,7 @@ class Surrogate:
         def weights(bptt: int | None, behaviour: torch.Tensor) -> torch.Tensor:
             target = self.population.log_prob(who, r.inputs, r.actions, r.histories, bptt)
             log_ratios = _live(target - behaviour, r.alive).flatten(0, 1)
-            return estimators.importance_weights(log_ratios, s.batch_size)
+            return estimators.importance_weights(log_ratios, s.batch_size, nb.live)
 
         objective_weights = weights(s.bptt, self.behaviour_full)
         entropy = s.estimator.iw_entropy(objective_weights, nb).view(len(rows), -1).mean(-1)
@@ -390,12 +398,55 @@ class Surrogate:
             self.behaviour_exact = exact
         sampling = self.behaviour_exact.index_select(0, rows)
         weights = estimators.importance_weights(
-            _live(exact - sampling, alive).flatten(0, 1), s.batch_size
+            _live(exact - sampling, alive).flatten(0, 1), s.batch_size, nb.live
         )
         return s.estimator.kl(weights, nb).view(len(rows), -1).mean(-1)
 
 
 # ------------------------------------------------------------------ the off-policy loop
+@dataclass
+class _Search:
+    """One member's place in the off-policy loop: its learning rate and counts, what the last
+    step it tried broke, and what its last accepted theta' gave (what the epoch reports)."""
+
+    hyper: MemberSettings
+    row: int  # the member's row in the rollout
+    lr: float
+    entropies: np.ndarray  # (M,) IW entropies at the last accepted theta'
+    kl: float = 0.0
+    kl_exact: float = math.nan
+    off_iters: int = 0
+    backtracks: int = 0
+    non_finite: list[str] = field(default_factory=list)  # of the last step tried
+    stopped: list[str] = field(default_factory=list)  # what no step could mend
+    steps: list[StepRecord] = field(default_factory=list)
+
+    def accept(self, kl: float, kl_exact: float, s: OffPolicySettings) -> bool:
+        """The step stays inside the trust region: theta' is the last accepted one now.
+        -> whether to step again"""
+        self.off_iters += 1
+        self.kl, self.kl_exact = kl, kl_exact
+        done = self.off_iters >= self.hyper.max_off_iters
+        if s.backtracking == "reference":
+            done |= self.backtracks > 0  # at most one step after backtracking
+        return not done
+
+    def revert(self, s: OffPolicySettings) -> bool:
+        """The step left the trust region (or broke a number): theta' returns to the last
+        accepted one and the learning rate is backtracked. -> whether to try again"""
+        if s.backtracking == "reference":  # any rejection: retry at lr0 / factor^j
+            retry = self.backtracks < s.backtrack_tries - 1
+            if retry:
+                self.backtracks += 1
+                self.lr = self.hyper.lr / s.backtrack_factor**self.backtracks
+        else:  # first_step: only a rejected first step is retried, at a reduced rate
+            retry = self.off_iters == 0 and self.backtracks < s.backtrack_tries
+            if retry:
+                self.lr /= s.backtrack_factor
+                self.backtracks += 1
+        return retry
+
+
 def off_policy_loop(
     population: PolicyPopulation,
     optimizer: PopulationAdam,
@@ -404,9 +455,13 @@ def off_policy_loop(
     settings: OffPolicySettings,
 ) -> list[UpdateResult]:
     """The while-loop of Algorithm 3.1 for every member in ``members`` (S',), one batched
-    program. -> one result per member, in that order.
+    program (:func:`reference_loop` is the same for one member, written as the thesis does;
+    tests/test_reference_loop.py holds them equal). -> one result per member, in that order.
 
-    Gradients are each member's own (the members' objectives share no parameter)."""
+    Every iteration steps the members still searching, judges each member's step, and then,
+    for all of them at once, *accepts* (records theta' as the last accepted) or *reverts*
+    (returns theta' to it). Gradients are each member's own (the members' objectives share no
+    parameter)."""
     s, device, size = settings, population.device, population.size
     params = population.params
     if s.adam_reset:
@@ -414,30 +469,35 @@ def off_policy_loop(
     # theta' = theta: the IW objective equals the on-policy one and the KL is 0.
     start = surrogate(torch.arange(len(members), device=device))
     grads = _gradients(start.objective, params)
-    accepted_entropies = start.entropies.detach().double().cpu().numpy()  # (S', M), per row
-    accepted_kl = [0.0] * len(members)
-    accepted_exact = [0.0 if start.kl_exact is not None else math.nan] * len(members)
-    keep_adam = s.restore == "parameters_and_adam"
-    last_accepted = Snapshot(population, optimizer, grads, with_optimizer=keep_adam)
+    # A value that is not finite at the sampling policy cannot be stepped away from.
+    start_finite = _finite_quantities(start, grads, optimizer, members).tolist()  # (4, S')
+    start_entropies = start.entropies.detach().double().cpu().numpy()  # (S', M), per row
+    last_accepted = Snapshot(population, optimizer, grads, s.restore == "parameters_and_adam")
     hyper = s.members  # population member -> its own lr, delta, iterations, objective
-    lr = torch.tensor([h.lr for h in hyper], dtype=torch.float64, device=device)
     threshold = torch.tensor([h.kl_threshold for h in hyper], dtype=torch.float64, device=device)
-    off_iters, backtracks = [0] * size, [0] * size
-    records: dict[int, list[StepRecord]] = {int(m): [] for m in members.tolist()}
+    searches: dict[int, _Search] = {}
     searching = torch.zeros(size, dtype=torch.bool, device=device)  # members still stepping
-    searching[members] = torch.tensor([hyper[m].max_off_iters > 0 for m in members.tolist()],
-                                      device=device)  # fmt: skip
+    for i, m in enumerate(members.tolist()):
+        search = searches[m] = _Search(hyper[m], i, hyper[m].lr, start_entropies[i])
+        search.kl_exact = 0.0 if start.kl_exact is not None else math.nan
+        broken = [n for n, ok in zip(NON_FINITE, start_finite, strict=True) if not ok[i]]
+        search.stopped = [f"{name} at the sampling policy" for name in broken]
+        searching[m] = hyper[m].max_off_iters > 0 and not broken
     while bool(searching.any()):
+        lr = torch.tensor([searches[m].lr if m in searches else h.lr for m, h in enumerate(hyper)],
+                          dtype=torch.float64, device=device)  # fmt: skip
         optimizer.step(grads, lr, searching)  # theta' <- theta' + Adam step
         stepped = searching.nonzero()[:, 0].tolist()
+        stepped_members = torch.tensor(stepped, device=device)
         estimate = surrogate(surrogate.rows(stepped))
-        grads = _merge(grads, _gradients(estimate.objective, params), _mask(stepped, size, device))
-        limit = threshold.index_select(0, torch.tensor(stepped, device=device)).to(
-            estimate.kl.dtype
-        )
-        in_region = (estimate.kl <= limit) & torch.isfinite(estimate.objective)
+        new_grads = _gradients(estimate.objective, params)
+        finite = _finite_quantities(estimate, new_grads, optimizer, stepped_members)  # (4, R)
+        grads = _merge(grads, new_grads, _mask(stepped, size, device))
+        limit = threshold.index_select(0, stepped_members).to(estimate.kl.dtype)
+        in_region = (estimate.kl <= limit) & finite.all(0)
         # One host sync per iteration: on a GPU the loop waits for the device only here.
-        numbers = [in_region.to(estimate.kl.dtype), estimate.kl.detach()]
+        dtype = estimate.kl.dtype
+        numbers = [in_region.to(dtype), estimate.kl.detach(), *finite.to(dtype)]
         if s.diagnostics:
             exact = estimate.kl_exact
             numbers += [
@@ -447,65 +507,166 @@ def off_policy_loop(
                 estimate.objective.detach(),
             ]
         host = torch.stack(numbers).tolist()
-        flags, kl_values = host[0], host[1]
-        accepted = torch.zeros(size, dtype=torch.bool, device=device)
-        rejected = torch.zeros(size, dtype=torch.bool, device=device)
+        flags, kl_values, finite_host, diagnosed = host[0], host[1], host[2:6], host[6:]
+        accept, revert, broken = (torch.zeros(size, dtype=torch.bool, device=device)
+                                  for _ in range(3))  # fmt: skip
         accepted_now = []
         for i, m in enumerate(stepped):
+            search = searches[m]
             if s.diagnostics:
-                records[m].append(
-                    StepRecord(len(records[m]), float(lr[m]), bool(flags[i]), kl_values[i],
-                               *(row[i] for row in host[2:]))
+                search.steps.append(
+                    StepRecord(len(search.steps), search.lr, bool(flags[i]), kl_values[i],
+                               *(row[i] for row in diagnosed))
                 )  # fmt: skip
+            search.non_finite = [n for n, ok in zip(NON_FINITE, finite_host, strict=True)
+                                 if not ok[i]]  # fmt: skip
             if flags[i]:
-                accepted[m] = True
-                off_iters[m] += 1
-                accepted_kl[surrogate.row_of[m]] = kl_values[i]
-                if s.diagnostics:
-                    accepted_exact[surrogate.row_of[m]] = host[3][i]
+                exact_kl = diagnosed[1][i] if s.diagnostics else search.kl_exact
+                searching[m] = search.accept(kl_values[i], exact_kl, s)
+                accept[m] = True
                 accepted_now.append(i)
-                done = off_iters[m] >= hyper[m].max_off_iters
-                if s.backtracking == "reference":
-                    done |= backtracks[m] > 0  # at most one step after backtracking
-                searching[m] = not done
-                continue
-            rejected[m] = True
-            if s.backtracking == "reference":
-                retry = backtracks[m] < s.backtrack_tries - 1
-                if retry:
-                    backtracks[m] += 1
-                    lr[m] = hyper[m].lr / s.backtrack_factor ** backtracks[m]
-            else:  # first_step: only a rejected first step is retried, at a reduced rate
-                retry = off_iters[m] == 0 and backtracks[m] < s.backtrack_tries
-                if retry:
-                    lr[m] /= s.backtrack_factor
-                    backtracks[m] += 1
-            searching[m] = retry
+            else:
+                searching[m] = search.revert(s)
+                revert[m] = True
+                broken[m] = bool(search.non_finite)  # its Adam state too, whatever restore says
         if accepted_now:
             kept = estimate.entropies.detach().double().cpu().numpy()
             for i in accepted_now:
-                accepted_entropies[surrogate.row_of[stepped[i]]] = kept[i]
-        last_accepted.take(population, optimizer, grads, accepted)
-        last_accepted.restore(population, optimizer, grads, rejected)
-    lr_host = lr.tolist()
+                searches[stepped[i]].entropies = kept[i]
+        last_accepted.take(population, optimizer, grads, accept)
+        last_accepted.restore(population, optimizer, grads, revert, optimizer_mask=broken)
+    for search in searches.values():  # every step tried broke a number: nothing mends it
+        if search.off_iters == 0 and search.non_finite and not search.stopped:
+            search.stopped = [f"{name} at every step tried" for name in search.non_finite]
     check = surrogate.full_precision()  # a lowered precision, checked once an epoch
     kl_full, entropy_full = (
         ([math.nan] * len(members),) * 2 if check is None else [c.tolist() for c in check]
     )
     return [
         UpdateResult(
-            entropies=accepted_entropies[surrogate.row_of[m]],
-            kl=accepted_kl[surrogate.row_of[m]],
-            off_iters=off_iters[m],
-            backtracks=backtracks[m],
-            lr=lr_host[m],
-            kl_exact=accepted_exact[surrogate.row_of[m]] if s.diagnostics else math.nan,
-            kl_full_precision=kl_full[surrogate.row_of[m]],
-            entropy_iw_full_precision=entropy_full[surrogate.row_of[m]],
-            steps=records[m],
+            entropies=search.entropies,
+            kl=search.kl,
+            off_iters=search.off_iters,
+            backtracks=search.backtracks,
+            lr=search.lr,
+            kl_exact=search.kl_exact if s.diagnostics else math.nan,
+            kl_full_precision=kl_full[search.row],
+            entropy_iw_full_precision=entropy_full[search.row],
+            steps=search.steps,
+            non_finite=search.stopped,
         )
-        for m in members.tolist()
+        for search in (searches[m] for m in members.tolist())
     ]
+
+
+def reference_loop(
+    population: PolicyPopulation,
+    optimizer: PopulationAdam,
+    surrogate: Surrogate,
+    settings: OffPolicySettings,
+) -> UpdateResult:
+    """Algorithm 3.1's while-loop for a population of one member, as the thesis writes it, with
+    the reference's backtracking and this project's rules (``backtracking``, ``restore``, the
+    exact trust region, ``adam_reset``, non-finite values) spelled out one at a time: the
+    executable specification :func:`off_policy_loop` is tested equal to, bit for bit on a CPU
+    (tests/test_reference_loop.py). Nothing else calls it."""
+    s, hyper, params = settings, settings.members[0], population.params
+    one = torch.ones(1, dtype=torch.bool, device=population.device)
+    if s.adam_reset:
+        optimizer.reset(one)
+    row = torch.zeros(1, dtype=torch.long, device=population.device)
+    estimate = surrogate(row)  # theta' = theta: the on-policy entropy, KL 0
+    grads = _gradients(estimate.objective, params)
+    kept = Snapshot(population, optimizer, grads, s.restore == "parameters_and_adam")
+    result = UpdateResult(estimate.entropies.detach().double().cpu().numpy()[0], 0.0, 0, 0,
+                          hyper.lr, 0.0 if estimate.kl_exact is not None else math.nan)  # fmt: skip
+    broken = _broken(estimate, grads, optimizer)
+    result.non_finite = [f"{name} at the sampling policy" for name in broken]
+    steps = hyper.max_off_iters if not broken else 0
+    while result.off_iters < steps:
+        optimizer.step(grads, torch.tensor([result.lr], dtype=torch.float64), one)
+        estimate = surrogate(row)
+        grads = _gradients(estimate.objective, params)
+        broken = _broken(estimate, grads, optimizer)
+        inside = not broken and bool(estimate.kl <= hyper.kl_threshold)  # KL <= delta
+        if s.diagnostics:
+            result.steps.append(_step_record(len(result.steps), result.lr, inside, estimate))
+        if inside:  # accept: theta' is the last accepted policy now
+            kept.take(population, optimizer, grads, one)
+            result.off_iters += 1
+            result.kl = float(estimate.kl.detach())
+            result.kl_exact = result.steps[-1].kl_exact if s.diagnostics else result.kl_exact
+            result.entropies = estimate.entropies.detach().double().cpu().numpy()[0]
+            if s.backtracking == "reference" and result.backtracks > 0:
+                break  # one step after backtracking ends the epoch
+            continue
+        # revert: back to the last accepted theta' (and Adam's state, by the rule or on a NaN)
+        kept.restore(population, optimizer, grads, one, optimizer_mask=one if broken else None)
+        if s.backtracking == "reference":  # retry at lr0 / factor^j, at most tries - 1 times
+            if result.backtracks == s.backtrack_tries - 1:
+                break
+            result.backtracks += 1
+            result.lr = hyper.lr / s.backtrack_factor**result.backtracks
+        else:  # first_step: only a rejected first step is retried, at a reduced rate
+            if result.off_iters > 0 or result.backtracks == s.backtrack_tries:
+                break
+            result.backtracks += 1
+            result.lr /= s.backtrack_factor
+    if result.off_iters == 0 and broken and not result.non_finite:
+        result.non_finite = [f"{name} at every step tried" for name in broken]
+    if not s.diagnostics:
+        result.kl_exact = math.nan
+    check = surrogate.full_precision()
+    if check is not None:
+        result.kl_full_precision, result.entropy_iw_full_precision = (float(c) for c in check)
+    return result
+
+
+def _broken(estimate: Estimate, grads: dict[str, torch.Tensor], optimizer: PopulationAdam):
+    """The names of one member's quantities that are not finite (NON_FINITE's order)."""
+    member = torch.zeros(1, dtype=torch.long, device=optimizer.steps.device)
+    finite = _finite_quantities(estimate, grads, optimizer, member)
+    return [name for name, ok in zip(NON_FINITE, finite[:, 0].tolist(), strict=True) if not ok]
+
+
+def _step_record(step: int, lr: float, accepted: bool, estimate: Estimate) -> StepRecord:
+    """steps.csv's row of one member's step (in the estimate's precision, as the loop's)."""
+    exact = estimate.kl_exact
+    numbers = torch.stack([
+        estimate.kl.detach(),
+        estimate.kl_one_step.detach(),
+        torch.full_like(estimate.kl, math.nan) if exact is None else exact,
+        estimate.entropies.detach().mean(-1),
+        estimate.objective.detach(),
+    ])[:, 0].tolist()  # fmt: skip
+    return StepRecord(step, lr, accepted, *numbers)
+
+
+NON_FINITE = ("objective", "KL", "gradient of the objective", "Adam state")
+
+
+def _finite_quantities(
+    estimate: Estimate,
+    grads: dict[str, torch.Tensor],
+    optimizer: PopulationAdam,
+    members: torch.Tensor,
+) -> torch.Tensor:
+    """Which of the rows' quantities are finite, in the order of NON_FINITE: the objective,
+    the KL, the new gradient and the Adam moments of each row's member. -> (4, R) bool"""
+
+    def per_member(tensors: Sequence[torch.Tensor]) -> torch.Tensor:
+        finite = torch.stack([torch.isfinite(t).flatten(1).all(1) for t in tensors]).all(0)
+        return finite.index_select(0, members)
+
+    adam = [*optimizer.exp_avg.values(), *optimizer.exp_avg_sq.values()]
+    return torch.stack(
+        [
+            torch.isfinite(estimate.objective.detach()),
+            torch.isfinite(estimate.kl.detach()),
+            per_member(list(grads.values())),
+            per_member(adam),
+        ]
+    )
 
 
 def _gradients(value: torch.Tensor, params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -585,13 +746,16 @@ def _amax_per_member(values: torch.Tensor) -> torch.Tensor:
 def _select_batches(
     neighbours: estimators.Neighbours, rows: torch.Tensor, m_batches: int
 ) -> estimators.Neighbours:
-    """The mini-batches of some members: neighbours of (S' M) mini-batches -> (R M)."""
-    if len(rows) * m_batches == neighbours.radius.shape[0]:
-        return neighbours
-    idx = neighbours.indices.view(-1, m_batches, *neighbours.indices.shape[1:])
-    radius = neighbours.radius.view(-1, m_batches, neighbours.radius.shape[-1])
+    """The mini-batches of rollout rows ``rows`` (R,), in that order: neighbours of (S' M)
+    mini-batches -> (R M). Always gathered: rows may be every row in another order."""
+
+    def select(values: torch.Tensor) -> torch.Tensor:
+        return values.view(-1, m_batches, *values.shape[1:]).index_select(0, rows).flatten(0, 1)
+
+    live = neighbours.live
     return estimators.Neighbours(
-        indices=idx.index_select(0, rows).flatten(0, 1),
-        radius=radius.index_select(0, rows).flatten(0, 1),
+        indices=select(neighbours.indices),
+        radius=select(neighbours.radius),
         dim=neighbours.dim,
+        live=None if live is None else select(live),
     )

@@ -248,8 +248,10 @@ class PopulationAdam:
 
 
 class Snapshot:
-    """Parameters and gradients of every member (and, ``with_optimizer``, its Adam state), to
-    return rejected members to."""
+    """Parameters, gradients and Adam state of every member at its last accepted step, to
+    return rejected members to. ``with_optimizer``: whether a rejected step's revert restores
+    the Adam state too (a step rejected for a non-finite value always does:
+    :meth:`restore`'s ``optimizer_mask``)."""
 
     def __init__(
         self,
@@ -265,15 +267,14 @@ class Snapshot:
         ]
         self.steps = optimizer.steps.clone()
 
+    @staticmethod
     def _kept(
-        self,
         population: PolicyPopulation,
         optimizer: PopulationAdam,
         grads: dict[str, torch.Tensor],
     ) -> list[dict[str, torch.Tensor]]:
         """The tensors a snapshot keeps: weights, the last gradients, Adam's two moments."""
-        kept = [population.params, grads]
-        return [*kept, optimizer.exp_avg, optimizer.exp_avg_sq] if self.with_optimizer else kept
+        return [population.params, grads, optimizer.exp_avg, optimizer.exp_avg_sq]
 
     @torch.no_grad()
     def take(
@@ -286,8 +287,7 @@ class Snapshot:
         """Record the current state of the members where ``mask`` is True."""
         for kept, live in zip(self.tensors, self._kept(population, optimizer, grads), strict=True):
             _where_into(kept, mask, live)
-        if self.with_optimizer:
-            self.steps = torch.where(mask, optimizer.steps, self.steps)
+        self.steps = torch.where(mask, optimizer.steps, self.steps)
 
     @torch.no_grad()
     def restore(
@@ -296,12 +296,20 @@ class Snapshot:
         optimizer: PopulationAdam,
         grads: dict[str, torch.Tensor],
         mask: torch.Tensor,
+        optimizer_mask: torch.Tensor | None = None,
     ) -> None:
-        """Return the members where ``mask`` is True to the recorded state."""
-        for kept, live in zip(self.tensors, self._kept(population, optimizer, grads), strict=True):
-            _where_into(live, mask, kept)
-        if self.with_optimizer:
-            optimizer.steps = torch.where(mask, self.steps, optimizer.steps)
+        """Return the members where ``mask`` is True to the recorded weights and gradients, and
+        their Adam state too if ``with_optimizer``; the members of ``optimizer_mask`` get their
+        Adam state back whatever ``with_optimizer`` says."""
+        params, last_grads, *adam = self._kept(population, optimizer, grads)
+        _where_into(params, mask, self.tensors[0])
+        _where_into(last_grads, mask, self.tensors[1])
+        adam_mask = mask if self.with_optimizer else torch.zeros_like(mask)
+        if optimizer_mask is not None:
+            adam_mask = adam_mask | optimizer_mask
+        for live, kept in zip(adam, self.tensors[2:], strict=True):
+            _where_into(live, adam_mask, kept)
+        optimizer.steps = torch.where(adam_mask, self.steps, optimizer.steps)
 
 
 def _where_into(

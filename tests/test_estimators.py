@@ -426,3 +426,54 @@ def test_cvar_gradient_reaches_only_the_tail():
 def test_cvar_refuses_alpha_outside_0_1(alpha):
     with pytest.raises(ValueError, match="alpha"):
         objectives.cvar(torch.ones(4), alpha)
+
+
+# ------------------------------------------------------------------ particles that do not exist
+@st.composite
+def partly_live_sets(draw):
+    """Particles (M, P, d) with a live mask (M, P) holding more than k live in every mini-batch;
+    the dead ones sit on one point (an episode's last state, repeated), as a Gymnasium world
+    leaves them."""
+    x, k = draw(particle_sets(max_p=60))
+    m, p, _ = x.shape
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    live = rng.random((m, p)) < draw(st.floats(0.3, 1.0))
+    for j in range(m):  # at least k + 1 live particles
+        live[j, rng.permutation(p)[: k + 1]] = True
+        x[j, ~live[j]] = x[j, np.flatnonzero(live[j])[0]].clone()
+    return x, torch.from_numpy(live), k
+
+
+@few
+@given(partly_live_sets(), st.sampled_from(METHODS))
+def test_particles_that_do_not_exist_take_no_part_in_the_estimates(case, method):
+    """Each mini-batch's entropy (eq. 2.6), IW entropy (eq. 2.7) and KL (eq. 2.8) with a live
+    mask equal the same estimates over its live particles alone, with weights renormalised over
+    them; the dead particles get no weight and nobody's neighbour is dead."""
+    x, live, k = case
+    m, p, _ = x.shape
+    nb = nearest_neighbours(x, k, method, live)
+    log_ratios = torch.randn(m, p, dtype=F64, generator=gen(k))  # one trajectory a batch
+    weights = importance_weights(log_ratios, 1, live)
+    log_w = log_ratios.cumsum(-1)
+    assert (weights[~live] == 0).all()
+    found = live.gather(1, nb.indices.flatten(1)).view(nb.indices.shape)
+    assert bool(found[live].all())  # a live particle's neighbours are all live
+    entropy, iw, kl = knn_entropy(nb), iw_entropy(weights, nb), kl_divergence(weights, nb)
+    for j in range(m):
+        alone = x[j][live[j]][None]
+        nb_alone = nearest_neighbours(alone, k, method)
+        w_alone = torch.softmax(log_w[j][live[j]], dim=-1)[None]
+        torch.testing.assert_close(entropy[j], knn_entropy(nb_alone)[0])
+        torch.testing.assert_close(iw[j], iw_entropy(w_alone, nb_alone)[0])
+        torch.testing.assert_close(kl[j], kl_divergence(w_alone, nb_alone)[0])
+        torch.testing.assert_close(weights[j][live[j]], w_alone[0])
+
+
+def test_a_mini_batch_with_too_few_live_particles_is_refused_in_one_line():
+    x = torch.rand(2, 10, 2, dtype=F64, generator=gen(0))
+    live = torch.ones(2, 10, dtype=torch.bool)
+    live[1, 3:] = False  # 3 live particles, k = 3 needs 4
+    with pytest.raises(ValueError, match="only 3 live particles.*k=3"):
+        nearest_neighbours(x, 3, "kdtree", live)

@@ -388,3 +388,29 @@ def test_both_kinds_of_world_implement_the_world_protocol():
     for world in (SlopeWorld(), walk_world()):
         assert isinstance(world, World)
         assert world.maps == isinstance(world, SlopeWorld)
+
+
+def test_particles_after_an_episode_ended_take_no_part_in_the_entropy(tmp_path):
+    """Half the mini-batches run in a configuration whose wall ends every episode after a few
+    steps (a policy of mean +0.5), half in one without a wall. Each mini-batch's entropy is
+    eq. 2.6 over its live particles alone (by brute force); before, the last state's copies
+    counted too, each at a zero radius, ~18 nats too low apiece with k = 4."""
+    from hmepol_cli import mepol
+
+    cfg = compose_cfg(*WALK, "env.configs=[{wall:1.0},{wall:1000.0}]", "env.features=[0]",
+                      "algo.batch_size=3", "estimator.k=3", "algo.max_off_iters=1")  # fmt: skip
+    trainer = Trainer(cfg, tmp_path / "run")
+    with torch.no_grad():
+        trainer.population.params["mean_net.2.bias"].fill_(1.0)  # clipped to the bound, 0.5
+    configurations = torch.tensor([[0, 0, 0, 1, 1, 1]])
+    rollout = collect(trainer.world, trainer.population, None, configurations, 12,
+                      [torch.Generator().manual_seed(0)])  # fmt: skip
+    assert not rollout.alive[0, :3].all() and rollout.alive[0, 3:].all()
+    (stats,) = mepol._update(trainer.world, trainer.population, trainer.optimizer,
+                             trainer.settings, rollout, torch.tensor([0]), 0.0, 0.0)  # fmt: skip
+    x = rollout.particles[0, ..., :1].double()  # the entropy's feature: the position
+    for batch in range(2):
+        rows = slice(3 * batch, 3 * batch + 3)
+        live = x[rows][rollout.alive[0, rows]].numpy()
+        assert stats.entropies[batch] == pytest.approx(knn_entropy_by_hand(live, 3), rel=1e-5)
+    assert stats.floor_share == 0.0

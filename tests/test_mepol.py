@@ -189,3 +189,128 @@ def test_adam_reset_epoch_counts_only_the_epochs_own_steps():
             surrogate = Quadratic(pop)
             off_policy_loop(pop, adam, surrogate, torch.tensor([0]), settings(adam_reset=reset))
         assert float(adam.steps[0]) == expected
+
+
+class Poisoned(Quadratic):
+    """The quadratic surrogate, with a gradient that is not finite (NaN, through a hook on the
+    objective's input) for the members ``poisoned`` on the calls ``calls`` (1 = theta' = theta,
+    2 = after the first step, ...): the objective stays finite, so only the gradient is broken."""
+
+    def __init__(self, population, poisoned: set[int], calls) -> None:
+        super().__init__(population)
+        self.poisoned, self.poison_calls = poisoned, calls
+
+    def __call__(self, rows: torch.Tensor):
+        estimate = super().__call__(rows)
+        if self.calls not in self.poison_calls:
+            return estimate
+        log_std = self.population.params["log_std"].index_select(0, rows) * 1.0
+        bad = torch.tensor([int(r) in self.poisoned for r in rows])
+        log_std.register_hook(lambda g: torch.where(bad[:, None], torch.nan, g))
+        estimate.objective = log_std.sum(-1)
+        return estimate
+
+
+def adam_is_finite(adam: PopulationAdam, s: int = 0) -> bool:
+    moments = [*adam.exp_avg.values(), *adam.exp_avg_sq.values()]
+    return all(bool(torch.isfinite(v[s]).all()) for v in moments)
+
+
+@pytest.mark.parametrize("restore", ["parameters", "parameters_and_adam"])
+def test_a_non_finite_gradient_is_rejected_and_the_next_epoch_steps_as_usual(restore):
+    """The gradient after the first step is NaN: that step is rejected where the NaN arises
+    and retried smaller, Adam's moments stay finite, and the next epoch takes its steps (on
+    the old code the NaN entered Adam and every later step of the member was rejected)."""
+    pop, adam = population()
+    s = settings(restore=restore)
+    poisoned = Poisoned(pop, {0}, calls={2})
+    (first,) = off_policy_loop(pop, adam, poisoned, torch.tensor([0]), s)
+    # The first step's point has a NaN gradient: rejected, retried at lr / 2, accepted; the
+    # epoch ends there (the reference's rule).
+    assert (first.off_iters, first.backtracks) == (1, 1)
+    assert first.non_finite == []  # mended by the smaller step: the member goes on
+    assert moved(pop, poisoned) == pytest.approx(0.5, rel=1e-6)
+    assert adam_is_finite(adam)
+    (second,) = off_policy_loop(pop, adam, Quadratic(pop), torch.tensor([0]), s)
+    assert second.off_iters >= 2 and adam_is_finite(adam)
+    assert all(torch.isfinite(v).all() for v in pop.params.values())
+
+
+def test_a_gradient_that_stays_non_finite_stops_the_member_and_names_it():
+    """Every step's gradient is NaN for member 0: every try is rejected and the member's
+    result names what broke; member 1, in the same loop, steps exactly as on its own."""
+    pop, adam = population(2)
+    s = settings(2)
+    poisoned = Poisoned(pop, {0}, calls=range(2, 100))
+    results = off_policy_loop(pop, adam, poisoned, torch.tensor([0, 1]), s)
+    assert results[0].off_iters == 0 and results[0].backtracks == s.backtrack_tries - 1
+    assert results[0].non_finite == ["gradient of the objective at every step tried"]
+    assert moved(pop, poisoned, 0) == 0.0 and adam_is_finite(adam, 0)
+    pop1, adam1 = population()
+    (alone,) = off_policy_loop(pop1, adam1, Quadratic(pop1), torch.tensor([0]), settings())
+    assert (results[1].off_iters, results[1].backtracks, results[1].non_finite) == (
+        alone.off_iters, alone.backtracks, [],
+    )  # fmt: skip
+
+
+def test_a_non_finite_gradient_at_the_sampling_policy_stops_the_member_before_a_step():
+    pop, adam = population()
+    poisoned = Poisoned(pop, {0}, calls={1})
+    (result,) = off_policy_loop(pop, adam, poisoned, torch.tensor([0]), settings())
+    assert result.off_iters == 0 and float(adam.steps[0]) == 0
+    assert result.non_finite == ["gradient of the objective at the sampling policy"]
+
+
+def test_an_overflowing_adam_state_is_rejected_and_restored():
+    """A finite but huge gradient (1e30: its square overflows float32's Adam second moment to
+    inf, which would freeze the member: m / sqrt(inf) = 0) is rejected like a NaN, and the
+    Adam state is restored to the last accepted step's."""
+    from hmepol_cli.config import PolicyConfig
+    from hmepol_cli.policies import make_policy
+
+    pop = PolicyPopulation([make_policy(PolicyConfig(name="markov", hidden=[4]), 2, 2)])
+    adam = PopulationAdam(pop.params)
+
+    class Huge(Quadratic):
+        def __call__(self, rows):
+            estimate = super().__call__(rows)
+            if self.calls == 3:  # the gradient at the second step's point: 1e30 per entry
+                log_std = self.population.params["log_std"].index_select(0, rows)
+                estimate.objective = (log_std * 1e30).sum(-1) - (log_std * 1e30).sum(-1).detach()
+                estimate.objective = estimate.objective + log_std.sum(-1).detach()
+            return estimate
+
+    (result,) = off_policy_loop(pop, adam, Huge(pop), torch.tensor([0]), settings())
+    assert adam_is_finite(adam)
+    assert result.non_finite == [] and result.off_iters >= 1
+
+
+def test_a_member_whose_gradient_is_never_finite_fails_in_one_line_naming_epoch_and_quantity(
+    tmp_path, monkeypatch
+):
+    """End to end: member 1 of a population of two gets NaN gradients from the start. It stops
+    at epoch 0 with a one-line failure naming the epoch and the quantity (never a silent stall),
+    and member 0 trains on to the end."""
+    import json
+
+    from hmepol_cli import mepol
+    from hmepol_cli.trainer import Trainer
+    from tests.test_trainer import compose_cfg
+
+    real = mepol._gradients
+
+    def poisoned(value, params):
+        grads = real(value, params)
+        return {k: torch.cat([g[:1], torch.full_like(g[1:], torch.nan)]) for k, g in grads.items()}
+
+    monkeypatch.setattr(mepol, "_gradients", poisoned)
+    cfgs = [compose_cfg("epochs=2", "progress=false", f"seed={s}") for s in (0, 1)]
+    trainer = Trainer(cfgs, [tmp_path / f"seed{s}" for s in (0, 1)])
+    trainer.train()
+    failure = json.loads((tmp_path / "seed1" / "run.json").read_text())["failure"]
+    assert failure["epoch"] == 0
+    assert failure["reason"] == (
+        "non-finite gradient of the objective at the sampling policy at epoch 0: the run stopped "
+        "there"
+    )
+    assert json.loads((tmp_path / "seed0" / "run.json").read_text())["status"] == "finished"
