@@ -31,6 +31,7 @@ from hmepol_cli.plots import (
     trajectory_grid,
 )
 from hmepol_cli.report.aggregate_figure import draw_aggregates
+from hmepol_cli.report.aggregates import METHOD as AGGREGATES_METHOD
 from hmepol_cli.report.diagnostics import DROP_FROM, DROP_NATS, diagnosed, draw_diagnostics
 from hmepol_cli.report.runs import ALGO_ORDER, Group, Run, algo_label, format_wind
 from hmepol_cli.report.stats import curve_ci, mean_ci
@@ -569,8 +570,7 @@ def aggregates_figure(env: str, groups: list[Group], out_dir: Path) -> list[Figu
         caption = (
             "rliable's aggregates of the final entropies (Agarwal et al., 2021), a score being one "
             "seed's final entropy in one configuration. Left: interquartile mean (IQM) and mean of "
-            "all seed x configuration scores with stratified-bootstrap 95% intervals (each "
-            "configuration's seeds resampled on their own, 2,000 percentile resamples). Right: "
+            f"all seed x configuration scores with 95% intervals by a {AGGREGATES_METHOD}. Right: "
             "performance profile, the share of scores above each entropy, with pointwise "
             "intervals. The probability of improvement of each pair is in differences.csv "
             f"(p_improvement) and the table below. Seeds: {seeds_text(members)}."

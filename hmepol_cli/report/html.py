@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from hmepol_cli.report.aggregates import METHOD as AGGREGATES_METHOD
 from hmepol_cli.report.figures import FigureRecord
 from hmepol_cli.report.runs import Group, SkippedRun, format_wind
 from hmepol_cli.report.summary import ReportCounts, format_number
@@ -126,7 +127,7 @@ def write_index(
         "its mean over the last 10% of epochs. The dashed line log(free area) is the entropy of a "
         "uniform visitation of the free space, the highest any policy can reach. Beside them, "
         "rliable's aggregates (Agarwal et al., 2021): interquartile mean, mean and probability "
-        "of improvement with stratified-bootstrap 95% intervals, and performance profiles.</p>",
+        "of improvement with bootstrap 95% intervals over runs, and performance profiles.</p>",
         scale_notice(groups, finetune_runs),
         "<h2>Runs</h2>",
     ]
@@ -172,9 +173,9 @@ def write_index(
     parts.append("<h2>Summary</h2>")
     parts.append("<h3>Final entropy per group and configuration (nats)</h3>")
     parts.append(
-        "<p>Mean and Student-t 95% CI over seeds; IQM and mean with stratified-bootstrap 95% "
-        "intervals (<code>*_boot95_*</code>; the average row pools every seed x configuration "
-        "score).</p>"
+        "<p>Mean and Student-t 95% CI over seeds; IQM and mean with 95% intervals "
+        f"(<code>*_boot95_*</code>) by a {e(AGGREGATES_METHOD)}; the average row pools every "
+        "seed x configuration score.</p>"
     )
     parts.append(_table(tables.get("summary", pd.DataFrame())))
     parts.append("<h3>Differences between algorithms (nats)</h3>")
@@ -184,8 +185,8 @@ def write_index(
         "differences when both groups ran the same seeds, Welch's t-interval otherwise "
         "(column <code>method</code>). <code>p_improvement</code>: the probability that a run "
         "of the later algorithm scores higher than a run of the earlier (per configuration the "
-        "share of seed pairs, ties one half, averaged over configurations), with its "
-        "stratified-bootstrap 95% interval.</p>"
+        "share of seed pairs, ties one half, averaged over configurations), with its 95% "
+        "interval by the same bootstrap over runs.</p>"
     )
     parts.append(_table(tables.get("differences", pd.DataFrame())))
     finetune = tables.get("finetune", pd.DataFrame())

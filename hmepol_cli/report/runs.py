@@ -244,16 +244,14 @@ class Group:
         """Final entropy of every seed, {seed: nats}."""
         return {r.seed: r.final_entropy(config) for r in self.runs}
 
-    def scores(self, config: int | None = None) -> list[np.ndarray]:
-        """The score matrix of rliable's aggregates: one array of finite final entropies (one
-        per seed, seed order) per configuration, or only ``config``'s."""
+    def scores(self, config: int | None = None) -> np.ndarray:
+        """The score matrix of rliable's aggregates, (n_seeds, n_configurations) in seed order:
+        final entropies, a row per run (one column: ``config``'s). A run without a finite score
+        in some configuration (never drawn there) is left out, as its row is incomplete."""
         configs = range(self.n_configurations) if config is None else [config]
-        out = []
-        for c in configs:
-            finals = self.finals(c)
-            values = np.array([finals[s] for s in sorted(finals)], dtype=float)
-            out.append(values[np.isfinite(values)])
-        return out
+        finals = [self.finals(c) for c in configs]
+        matrix = np.array([[f[s] for f in finals] for s in self.seeds], dtype=float)
+        return matrix[np.isfinite(matrix).all(axis=1)].reshape(-1, len(finals))
 
     def curves(self, config: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Entropy curves of all seeds aligned on epoch: (epochs,), (n_seeds, n_epochs)."""

@@ -296,6 +296,4 @@ def detectable_difference(
     high = se * (t_quantile(df, confidence) + 2.0)
     while t_test_power(se, df, high, confidence) < power:
         high *= 2
-    return float(
-        optimize.brentq(lambda d: t_test_power(se, df, d, confidence) - power, 0.0, high)
-    )
+    return float(optimize.brentq(lambda d: t_test_power(se, df, d, confidence) - power, 0.0, high))

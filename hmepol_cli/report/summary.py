@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from hmepol_cli.report.aggregates import METHOD as AGGREGATES_METHOD
 from hmepol_cli.report.aggregates import improvement_interval, iqm_interval, mean_interval
 from hmepol_cli.report.diagnostics import DROP_FROM, DROP_NATS, diagnosed, drop_table
 from hmepol_cli.report.figures import average_bound, finetune_curves, finetune_frame
@@ -46,8 +47,8 @@ def _config_rows(group: Group) -> list[tuple[int | None, str]]:
 
 def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
     """One row per group and configuration: mean final entropy over seeds and its 95% t-interval,
-    then rliable's IQM and mean with stratified-bootstrap intervals (the "average" row's over every
-    seed x configuration score, the others' over that configuration's seeds)."""
+    then rliable's IQM and mean with bootstrap intervals over runs (the "average" row's over
+    every seed x configuration score, the others' over that configuration's seeds)."""
     rows = []
     for group in groups:
         run = group.first
@@ -85,8 +86,8 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
 
     Paired t-interval when both groups ran the same seeds, Welch's t-interval otherwise
     (the ``method`` column says which). ``p_improvement`` is rliable's probability that a run of
-    the later group scores higher than one of the earlier, with its stratified-bootstrap interval
-    (the "average" row's over every configuration).
+    the later group scores higher than one of the earlier, with its bootstrap interval over
+    runs (the "average" row's over every configuration).
     """
     rows = []
     by_setting: dict[tuple, list[Group]] = {}
@@ -208,9 +209,8 @@ def write_summary(
         "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs; then the "
         "mean over seeds with a Student-t 95% confidence interval (n/a with one seed), and "
         "rliable's aggregates (Agarwal et al., 2021): the interquartile mean (IQM) and the mean "
-        "with stratified-bootstrap 95% intervals (2,000 percentile resamples; the average row "
-        "pools every seed x configuration score, resampling each configuration's seeds on its "
-        "own).\n",
+        f"with 95% intervals by a {AGGREGATES_METHOD}; the average row pools every seed x "
+        "configuration score.\n",
         "## Final entropy per group and configuration\n",
         to_markdown(tables["summary"]),
         "## Differences between algorithms (same env and wind)\n",
@@ -218,7 +218,7 @@ def write_summary(
         "t-interval otherwise (column `method`). `p_improvement`: the probability that a run of "
         "the later algorithm scores higher than a run of the earlier (per configuration the "
         "share of seed pairs, ties one half; the average row averages it over configurations), "
-        "with its stratified-bootstrap interval.\n",
+        "with its interval by the same bootstrap.\n",
         to_markdown(tables["differences"]),
     ]
     if not tables["finetune"].empty:
