@@ -19,6 +19,7 @@ from hmepol_cli.report.runs import (
     discover_runs,
     drop_duplicate_seeds,
     group_runs,
+    merge_identical_runs,
 )
 from hmepol_cli.report.summary import ReportCounts, write_summary
 
@@ -32,7 +33,8 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     and ``report.json``, the list of those files; returns the path of ``index.html``. The files
     of an earlier report in ``out_dir`` that this one does not write again are deleted; a
     non-empty ``out_dir`` without ``report.json`` is refused. Unusable runs are skipped with a
-    warning and listed.
+    warning and listed; a run found twice (same config, seed and rows) is counted once, and the
+    page says which directories were merged.
     """
     roots = [runs_roots] if isinstance(runs_roots, str | Path) else list(runs_roots)
     roots = [Path(r) for r in roots]
@@ -48,6 +50,7 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     if not runs and not skipped:
         where = ", ".join(repr(str(r)) for r in roots)
         raise UserError(f"no runs under {where} (no directory holds a run.json)")
+    runs, merged = merge_identical_runs(runs)
     runs, duplicates = drop_duplicate_seeds(runs)
     skipped = sorted(skipped + duplicates, key=lambda s: str(s.path))
     groups = group_runs(runs)
@@ -61,9 +64,10 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
         groups=len(groups),
         skipped=len(skipped),
         figures=len(figures),
+        merged=len(merged),
     )
     index = write_index(
-        out_dir, roots, groups, finetune_runs, skipped, figures, tables, table_files, counts
+        out_dir, roots, groups, finetune_runs, skipped, merged, figures, tables, table_files, counts
     )
     write_manifest(out_dir, [f.path for f in figures] + table_files + [index], previous)
     print(f"report: {counts.text()} -> {index}")
