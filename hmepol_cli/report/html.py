@@ -79,9 +79,15 @@ def scale_notice(groups: list[Group], finetune_runs: list) -> str:
         for g in groups
         if len(g.runs) < SMOKE_SEEDS or min(len(r.epochs) for r in g.runs) < SMOKE_EPOCHS
     ]
-    finetune_seeds = {r.seed for r in finetune_runs}
-    if finetune_runs and len(finetune_seeds) < SMOKE_SEEDS:
-        small.append(f"fine-tuning: {len(finetune_seeds)} seed(s)")
+    units: dict[str, set[str]] = {}  # per initialisation, its independent units
+    for run in finetune_runs:
+        units.setdefault(run.algo, set()).add(run.independent_unit)
+    fewest = min((len(u) for u in units.values()), default=SMOKE_SEEDS)
+    if fewest < SMOKE_SEEDS:
+        small.append(
+            f"fine-tuning: {fewest} pre-training run{'s' if fewest != 1 else ''} (or runs from "
+            "scratch) for an initialisation"
+        )
     if not small:
         return ""
     return (
