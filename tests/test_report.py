@@ -484,6 +484,18 @@ def test_a_run_of_the_same_seed_with_other_rows_is_not_a_copy(tmp_path):
     assert [(m.path, m.kept) for m in merged] == [(c, a)]
 
 
+def test_of_two_copies_the_latest_is_kept(tmp_path):
+    from hmepol_cli.report.runs import merge_identical_runs
+
+    # The same numbers made twice: only the timings differ. Kept: the later, as
+    # drop_duplicate_seeds would keep it.
+    earlier = write_run(tmp_path, seed=3, name="a-earlier", last_wall_time=1.7e9)
+    later = write_run(tmp_path, seed=3, name="b-later", last_wall_time=1.8e9)
+    kept, merged = merge_identical_runs(discover_runs(tmp_path)[0])
+    assert [r.path for r in kept] == [later]
+    assert [(m.path, m.kept) for m in merged] == [(earlier, later)]
+
+
 # ----------------------------------------------------------------------------- the whole report
 def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     root = tmp_path / "runs"

@@ -624,16 +624,17 @@ def _fingerprint(run: Run) -> tuple:
 
 def merge_identical_runs(runs: list[Run]) -> tuple[list[Run], list[MergedRun]]:
     """Keep one of the directories that hold the same run (:func:`_fingerprint`): found in two
-    input folders (a copy, one run listed twice), it is one draw and is counted once. The first
-    in path order is kept."""
-    kept: dict[tuple, Run] = {}
-    merged: list[MergedRun] = []
+    input folders (a copy, one run listed twice), it is one draw and is counted once. The one
+    kept is the one :func:`drop_duplicate_seeds` would keep (the latest, then path order)."""
+    same: dict[tuple, list[Run]] = {}
     for run in sorted(runs, key=lambda r: str(r.path)):
-        twin = kept.setdefault(_fingerprint(run), run)
-        if twin is not run:
-            merged.append(MergedRun(run.path, twin.path))
-    copies = {m.path for m in merged}
-    return [r for r in runs if r.path not in copies], merged
+        same.setdefault(_fingerprint(run), []).append(run)
+    merged = []
+    for copies in same.values():
+        kept = max(copies, key=lambda r: r.completeness)
+        merged += [MergedRun(r.path, kept.path) for r in copies if r is not kept]
+    left_out = {m.path for m in merged}
+    return [r for r in runs if r.path not in left_out], merged
 
 
 def drop_duplicate_seeds(runs: list[Run]) -> tuple[list[Run], list[SkippedRun]]:
