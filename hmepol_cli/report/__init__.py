@@ -1,7 +1,9 @@
 """``hmepol report``: aggregate finished runs into the thesis figures, tables and one HTML page.
 
-Data path: runs.py (find, load, group) -> stats.py (mean, t-intervals) -> figures.py / plots.py
-(PNG) -> summary.py (CSV, Markdown) -> html.py (index.html) -> manifest.py (report.json).
+Data path: runs.py (find, load, merge copies, group) -> stats.py (means and intervals over the
+unit of independence, seeds needed), aggregates.py (rliable, bootstrapped over runs) ->
+figures.py / plots.py (PNG) -> summary.py (CSV, Markdown; resolution.py's notes) -> html.py
+(index.html) -> manifest.py (report.json). docs/statistics.md gives every formula.
 """
 
 from __future__ import annotations
