@@ -20,7 +20,7 @@ from matplotlib.patches import Rectangle
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
 from hmepol_cli.envs.render import draw_world
 
-OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#ff7f0e")
+OTHER_COLOURS = ("#ff7f0e", "#9467bd", "#8c564b", "#17becf", "#e377c2", "#bcbd22")
 LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1)), (0, (5, 2, 1, 2)))
 BOUND_COLOUR = "0.25"  # the log(free area) line
 HEATMAP_CMAP = "viridis"

@@ -27,59 +27,69 @@ def test_iqm_is_the_mean_of_the_middle_half():
 
 
 def test_probability_of_improvement_by_hand():
-    # x = (1, 2) against y = (1.5, 3): of 4 pairs only 2 > 1.5 -> 1/4.
-    assert improvement_interval([np.array([1.0, 2.0])], [np.array([1.5, 3.0])]).estimate == 0.25
+    # x = (1, 2, 2) against y = (1.5, 3, 3): of 9 pairs only the two 2s > 1.5 -> 2/9.
+    x, y = np.array([[1.0], [2.0], [2.0]]), np.array([[1.5], [3.0], [3.0]])
+    assert improvement_interval(x, y).estimate == pytest.approx(2 / 9)
     # A tie counts one half; tasks are averaged: task 1 gives 1/2, task 2 (x above y) gives 1.
     p = improvement_interval(
-        [np.array([1.0, 1.0]), np.array([5.0, 6.0])], [np.array([1.0, 1.0]), np.array([0.0, 2.0])]
+        np.array([[1.0, 5.0], [1.0, 6.0], [1.0, 5.5]]),
+        np.array([[1.0, 0.0], [1.0, 2.0], [1.0, 1.0]]),
     )
     assert p.estimate == pytest.approx(0.75)
     assert p.low == pytest.approx(0.75) and p.high == pytest.approx(0.75)  # no pair can change
 
 
-def test_bootstrap_is_stratified_by_configuration():
-    # Each configuration's seeds agree: resampling within configurations cannot move the mean,
-    # while resampling the pooled scores would (a resample of mostly 0s or mostly 10s).
-    tasks = [np.zeros(4), np.full(4, 10.0)]
-    mean = mean_interval(tasks)
+def test_the_bootstrap_resamples_a_run_whole():
+    # Each run scores 0 in one configuration and 10 in the other: every run's average is 5, so
+    # no resample of runs can move the mean. Resampling each configuration's seeds on its own
+    # (rliable's stratified bootstrap) would pair a 0 with a 0 and give a wide interval.
+    scores = np.array([[0.0, 10.0], [10.0, 0.0], [0.0, 10.0], [10.0, 0.0]])
+    mean = mean_interval(scores)
     assert (mean.estimate, mean.low, mean.high) == (5.0, 5.0, 5.0)
-    middle = iqm_interval(tasks)
+    # Each configuration's seeds agree: resampling runs cannot move the IQM either.
+    middle = iqm_interval(np.column_stack([np.zeros(4), np.full(4, 10.0)]))
     assert middle.low == middle.high == middle.estimate == 5.0
 
 
 def test_performance_profile_by_hand():
-    tasks = [np.array([1.0, 2.0, 3.0]), np.array([4.0, 5.0, 6.0])]
-    share, low, high = performance_profile(tasks, np.array([0.0, 2.5, 6.0]))
+    scores = np.column_stack([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    share, low, high = performance_profile(scores, np.array([0.0, 2.5, 6.0]))
     assert share.tolist() == [1.0, pytest.approx(4 / 6), 0.0]
     assert low[0] == high[0] == 1.0 and low[2] == high[2] == 0.0
     assert low[1] <= share[1] <= high[1] and low[1] < high[1]
 
 
-def test_one_seed_has_no_interval():
-    value = iqm_interval([np.array([1.0]), np.array([2.0, 3.0])])
-    assert value.estimate == pytest.approx(2.0)
+def test_fewer_than_three_runs_have_no_interval():
+    # Two runs: a bootstrap can only return values between them (coverage far below 95%).
+    value = iqm_interval(np.array([[1.0, 2.0], [3.0, 4.0]]))
+    assert value.estimate == pytest.approx(2.5)
     assert np.isnan(value.low) and np.isnan(value.high)
+    assert np.isfinite(iqm_interval(np.array([[1.0], [2.0], [3.0]])).low)
 
 
 @settings(max_examples=25, deadline=None)
 @given(
-    st.lists(
-        st.lists(st.floats(-5, 5, allow_nan=False), min_size=2, max_size=6), min_size=1, max_size=3
+    st.integers(3, 6).flatmap(
+        lambda runs: st.lists(
+            st.lists(st.floats(-5, 5, allow_nan=False), min_size=runs, max_size=runs),
+            min_size=1,
+            max_size=3,
+        )
     )
 )
-def test_intervals_hold_their_estimate_and_stay_within_the_scores(values):
-    tasks = [np.array(v) for v in values]
-    every = np.concatenate(tasks)
-    for interval in (mean_interval(tasks), iqm_interval(tasks)):
-        assert every.min() - 1e-9 <= interval.low <= interval.high <= every.max() + 1e-9
-    p = improvement_interval(tasks, tasks)
+def test_intervals_hold_their_estimate_and_stay_within_the_scores(columns):
+    scores = np.column_stack(columns)
+    for interval in (mean_interval(scores), iqm_interval(scores)):
+        assert scores.min() - 1e-9 <= interval.low <= interval.high <= scores.max() + 1e-9
+    p = improvement_interval(scores, scores)
     assert p.estimate == pytest.approx(0.5)  # an algorithm against itself
+    assert 0.0 <= p.low <= p.high <= 1.0
 
 
 def test_same_scores_give_the_same_intervals():
     rng = np.random.default_rng(3)
-    tasks = [rng.normal(size=5), rng.normal(size=5)]
-    assert iqm_interval(tasks) == iqm_interval([t.copy() for t in tasks])
+    scores = rng.normal(size=(5, 2))
+    assert iqm_interval(scores) == iqm_interval(scores.copy())
 
 
 def test_summary_and_differences_hold_the_aggregates(tmp_path):

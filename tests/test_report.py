@@ -144,11 +144,20 @@ def write_finetune_run(
     epochs: int = 10,
     env: str = "slope",
     wind: float = 0.4,
+    init: str | None = None,
+    targets: int = 3,
+    returns=None,
+    name: str | None = None,
 ) -> Path:
-    run = root / f"finetune-{algo_init}-seed{seed}"
+    """A fine-tuning run: by default from pre-training run ``runs/<algo_init>-seed<seed>``
+    (``init``: another), fine-tuning seed ``seed``, on ``targets`` targets of a goal task whose
+    return rises at a speed set by the initialisation; ``returns(epoch, target)`` replaces it."""
+    if init is None:
+        init = "none" if algo_init == "scratch" else f"/runs/{algo_init}-seed{seed}@75"
+    run = root / (name or f"finetune-{algo_init}-seed{seed}")
     (run / ".hydra").mkdir(parents=True)
     (run / ".hydra" / "config.yaml").write_text(
-        f"env:\n  name: {env}\nseed: {seed}\nwind: {wind}\n"
+        f"env:\n  name: {env}\nseed: {seed}\nwind: {wind}\ninit: {init}\noutput_dir: {run}\n"
     )
     (run / "run.json").write_text(
         json.dumps(
@@ -156,7 +165,8 @@ def write_finetune_run(
                 "status": "finished",
                 "epochs_done": epochs,
                 "env": env,
-                "algo": "trpo",
+                "algo": algo_init,
+                "init": init,
                 "policy": "markov",
                 "seed": seed,
                 "wind": wind,
@@ -168,18 +178,25 @@ def write_finetune_run(
         )
     )
     speed = {"hmepol": 1.0, "mepol": 0.3, "scratch": 0.1}[algo_init]
+    if returns is None:
+
+        def returns(e: int, t: int) -> float:
+            return min(1.0, speed * e / epochs) * (1 - 0.01 * t)
+
     rows = [
         {
             "epoch": e,
             "target": t,
             "config": c,
-            "return": min(1.0, speed * e / epochs) + 0.01 * t,
-            "init": "none" if algo_init == "scratch" else "some/run",
+            "return": returns(e, t),
+            "success_rate": returns(e, t),  # a goal task: the return is the share that arrived
+            "init": init,
             "algo_init": algo_init,
             "seed": seed,
+            "seconds": 0.5 + seed,
         }
         for e in range(epochs)
-        for t in range(3)
+        for t in range(targets)
         for c in range(2)
     ]
     pd.DataFrame(rows).to_csv(run / "finetune.csv", index=False)
@@ -356,6 +373,129 @@ def test_summary_difference_equals_hand_computed(tmp_path):
     assert diff["ci95_high"] - diff["diff_nats"] == pytest.approx(3.515420 * se, rel=1e-6)
 
 
+def test_summary_difference_carries_the_seeds_it_would_need(tmp_path):
+    from hmepol_cli.report.stats import Spread, seeds_for_half_width, seeds_for_power
+
+    finals = {"mepol": {0: 1.0, 1: 1.2, 2: 1.1}, "hmepol": {0: 1.5, 1: 1.4, 3: 1.9}}
+    for algo, by_seed in finals.items():
+        for seed, value in by_seed.items():
+            write_run(tmp_path, algo=algo, seed=seed, final=value, epochs=10)
+    diff = difference_table(group_runs(discover_runs(tmp_path)[0])).set_index("config")
+    row = diff.loc["average"]
+    spread = Spread.welch(0.01, 0.07)  # the two arms' variances, as by hand above
+    assert row["seeds_per_arm_hw0.25"] == seeds_for_half_width(spread, 0.25)
+    assert row["seeds_per_arm_hw0.3"] == seeds_for_half_width(spread, 0.3)
+    assert row["seeds_per_arm_power80_d0.4"] == seeds_for_power(spread, 0.4)
+    assert row["seeds_per_arm_hw0.25"] >= row["seeds_per_arm_hw0.3"] >= 2
+    assert 0.0 < row["detectable_diff_power80"] < math.inf
+
+
+# ---------------------------------------------------------------- fine-tuning over its true unit
+def test_fine_tuning_interval_is_over_pre_training_runs_not_curves(tmp_path):
+    from hmepol_cli.report.summary import finetune_table
+
+    # Two pre-training runs, five targets each, every target of a run at the same return: ten
+    # curves, but two independent draws (the same case as test_statistics, through the table).
+    for seed, value in ((0, 0.2), (1, 0.6)):
+        write_finetune_run(
+            tmp_path, algo_init="hmepol", seed=seed, targets=5, returns=lambda e, t, v=value: v
+        )
+    runs, _ = discover_runs(tmp_path)
+    table = finetune_table(runs)
+    row = table[table["config"] == 0].iloc[0]
+    assert (row["n_pretrain"], row["n_targets"], row["n_curves"], row["n_units"]) == (2, 5, 10, 2)
+    assert row["unit"] == "pre-training run" and row["final_return"] == pytest.approx(0.4)
+    assert row["ci95_half_width"] == pytest.approx(12.706204736 * 0.2, rel=1e-9)
+    # A goal task's return is a share of episodes: the interval stops at 0 and 1.
+    assert (row["ci95_low"], row["ci95_high"]) == (0.0, 1.0)
+
+
+def test_fine_tuning_seeds_of_one_pre_training_run_are_one_unit(tmp_path):
+    from hmepol_cli.report.summary import finetune_table
+
+    # Three fine-tunings of one pre-training run (seeds 0-2, its kept checkpoint given two
+    # ways): one unit, so no interval; a second pre-training run makes two.
+    for seed, init in ((0, "/runs/a@75"), (1, "/runs/a@75"), (2, "/runs/a/checkpoints/last.pt")):
+        write_finetune_run(tmp_path, algo_init="mepol", seed=seed, init=init)
+    table = finetune_table(discover_runs(tmp_path)[0])
+    row = table.iloc[0]
+    assert (row["n_units"], row["n_pretrain"], row["n_finetune_seeds"]) == (1, 1, 3)
+    assert math.isnan(row["ci95_low"]) and math.isnan(row["ci95_high"])
+    write_finetune_run(tmp_path, algo_init="mepol", seed=0, init="/runs/b@75", name="from-b")
+    assert finetune_table(discover_runs(tmp_path)[0]).iloc[0]["n_units"] == 2
+    # From scratch each fine-tuning run is its own unit.
+    for seed in (0, 1, 2):
+        write_finetune_run(tmp_path, algo_init="scratch", seed=seed)
+    scratch = finetune_table(discover_runs(tmp_path)[0]).query("init == 'from scratch'")
+    assert (scratch["n_units"] == 3).all() and (scratch["n_pretrain"] == 0).all()
+
+
+def test_a_reward_task_without_a_success_rate_is_not_bounded(tmp_path):
+    from hmepol_cli.report.summary import finetune_table
+
+    for seed in range(3):
+        run = write_finetune_run(tmp_path, algo_init="scratch", seed=seed)
+        rows = pd.read_csv(run / "finetune.csv")
+        rows["return"] = 50.0 * seed + rows["epoch"]  # a world's own reward, far past 1
+        rows["success_rate"] = np.nan  # what the runner writes for a Gymnasium world's task
+        rows.to_csv(run / "finetune.csv", index=False)
+    row = finetune_table(discover_runs(tmp_path)[0]).iloc[0]
+    assert row["ci95_high"] > 1.0 and row["ci95_low"] < row["final_return"]
+    assert row["ci95_high"] - row["ci95_low"] == pytest.approx(2 * row["ci95_half_width"])
+
+
+# ---------------------------------------------------------------------------- merged copies
+def test_a_run_found_in_two_folders_is_counted_once(tmp_path, capsys):
+    first, second = tmp_path / "epoch75", tmp_path / "epoch100"
+    for seed in (0, 1):
+        write_run(first, algo="mepol", seed=seed)
+        write_finetune_run(first, algo_init="scratch", seed=seed)
+        write_finetune_run(second, algo_init="hmepol", seed=seed)
+    # The same scratch run and the same pre-training run in both folders: copies.
+    shutil.copytree(first / "finetune-scratch-seed0", second / "finetune-scratch-seed0")
+    shutil.copytree(first / "slope-mepol-wind0.4-seed1", second / "slope-mepol-wind0.4-seed1")
+    index = run_report([first, second], tmp_path / "report")
+    assert "2 identical copies merged" in capsys.readouterr().out
+    finetune = pd.read_csv(tmp_path / "report" / "finetune.csv")
+    scratch = finetune[(finetune["init"] == "from scratch") & (finetune["config"] == 0)].iloc[0]
+    assert scratch["n_curves"] == 2 * 3 and scratch["n_units"] == 2  # two runs, not three
+    summary = pd.read_csv(tmp_path / "report" / "summary.csv")
+    assert set(summary["seeds"]) == {"0 1"}
+    page = html.unescape(index.read_text())
+    assert "Merged runs" in page
+    assert "<code>epoch75/finetune-scratch-seed0</code> = <code>epoch100/finetune-scratch" in page
+
+
+def test_a_run_of_the_same_seed_with_other_rows_is_not_a_copy(tmp_path):
+    from hmepol_cli.report.runs import merge_identical_runs
+
+    a = write_finetune_run(tmp_path / "a", algo_init="scratch", seed=0)
+    b = write_finetune_run(tmp_path / "b", algo_init="scratch", seed=0)
+    c = write_finetune_run(tmp_path / "c", algo_init="scratch", seed=0)
+    rows = pd.read_csv(b / "finetune.csv")
+    rows.loc[3, "return"] = 0.5
+    rows.to_csv(b / "finetune.csv", index=False)
+    rows = pd.read_csv(c / "finetune.csv")
+    rows["seconds"] = 9.0  # another machine's timings: the same run
+    rows.to_csv(c / "finetune.csv", index=False)
+    runs = [r for root in "abc" for r in discover_runs(tmp_path / root)[0]]
+    kept, merged = merge_identical_runs(runs)
+    assert [r.path for r in kept] == [a, b]
+    assert [(m.path, m.kept) for m in merged] == [(c, a)]
+
+
+def test_of_two_copies_the_latest_is_kept(tmp_path):
+    from hmepol_cli.report.runs import merge_identical_runs
+
+    # The same numbers made twice: only the timings differ. Kept: the later, as
+    # drop_duplicate_seeds would keep it.
+    earlier = write_run(tmp_path, seed=3, name="a-earlier", last_wall_time=1.7e9)
+    later = write_run(tmp_path, seed=3, name="b-later", last_wall_time=1.8e9)
+    kept, merged = merge_identical_runs(discover_runs(tmp_path)[0])
+    assert [r.path for r in kept] == [later]
+    assert [(m.path, m.kept) for m in merged] == [(earlier, later)]
+
+
 # ----------------------------------------------------------------------------- the whole report
 def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     root = tmp_path / "runs"
@@ -411,7 +551,14 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     finetune = pd.read_csv(out / "finetune.csv")
     hm = finetune[(finetune["init"] == "HMepol") & (finetune["config"] == 0)].iloc[0]
     assert hm["n_curves"] == 6 and hm["first_epoch_reaching_mepol_final"] < 9
+    assert hm["n_pretrain"] == 2 and hm["n_targets"] == 3
+    bounded = finetune[["ci95_low", "ci95_high"]].dropna().to_numpy()
+    assert ((bounded >= 0.0) & (bounded <= 1.0)).all()
     assert (out / "summary.md").read_text().count("HMepol − Mepol") == 3
+    # Every table says its unit, what its n resolves, and that two seeds are too few.
+    assert "The unit of independence is the pre-training run" in page
+    assert page.count("What these seeds resolve") == 2 and "What these units resolve" in page
+    assert "Fewer than 3 independent units: 9 of 9 rows rest on 2 seeds in an arm" in page
 
 
 # Configuration 0 drawn every epoch, configuration 1 in even epochs only (of 20).
@@ -660,6 +807,84 @@ def test_a_run_of_one_epoch_is_drawn_as_a_point(tmp_path, drawn_figures):
             assert points == [(0.0, 0.0)], (name, ax.get_title())
 
 
+def _bands(ax) -> list[np.ndarray]:
+    from matplotlib.collections import PolyCollection
+
+    return [
+        path.vertices
+        for c in ax.collections
+        if isinstance(c, PolyCollection)
+        for path in c.get_paths()
+    ]
+
+
+def test_under_three_seeds_each_seed_is_drawn_and_no_band(tmp_path, drawn_figures):
+    for algo in ("mepol", "hmepol"):
+        for seed in (0, 1):
+            write_run(tmp_path / "runs", algo=algo, seed=seed, final=1.0 + 0.3 * seed)
+    index = run_report(tmp_path / "runs", tmp_path / "report")
+    [ax] = _panels(drawn_figures["slope_entropy_epochs.png"])
+    assert _bands(ax) == []
+    curves = [line for line in ax.get_lines() if len(line.get_xdata()) == 20]
+    assert len(curves) == 2 * (2 + 1)  # each group: two seeds' own curves and their mean
+    means = [line for line in curves if line.get_label().startswith(("Mepol", "HMepol"))]
+    assert len({line.get_color() for line in means}) == 2
+    assert [line.get_label() for line in means] == [
+        "Mepol (n=2, each seed drawn)", "HMepol (n=2, each seed drawn)",
+    ]  # fmt: skip
+    bars = drawn_figures["slope_final_entropy_bars.png"].axes[0]
+    assert not bars.containers or all(
+        type(c).__name__ != "ErrorbarContainer" for c in bars.containers
+    )
+    assert "thin lines: each seed's own curve" in html.unescape(index.read_text())
+
+
+def test_from_three_seeds_a_band_is_drawn_inside_the_axes(tmp_path, drawn_figures):
+    for seed in range(3):
+        write_run(tmp_path / "runs", seed=seed, final=1.0 + 0.5 * seed)
+    index = run_report(tmp_path / "runs", tmp_path / "report")
+    [ax] = _panels(drawn_figures["slope_entropy_epochs.png"])
+    [band] = _bands(ax)
+    low, high = ax.get_ylim()
+    assert low <= band[:, 1].min() and band[:, 1].max() <= high
+    assert len([line for line in ax.get_lines() if len(line.get_xdata()) == 20]) == 1  # mean
+    assert "band: Student-t 95% CI over seeds (3 seeds)" in html.unescape(index.read_text())
+
+
+def test_every_group_has_a_colour_of_its_own():
+    from types import SimpleNamespace
+
+    from hmepol_cli.plots import algo_colour
+    from hmepol_cli.report.figures import series_styles
+
+    groups = [
+        SimpleNamespace(algo="mepol", label="Mepol"),
+        SimpleNamespace(algo="hmepol", label="HMepol (algo.adam_reset=epoch)"),
+        SimpleNamespace(algo="hmepol", label="HMepol (algo.trust_region=exact)"),
+        SimpleNamespace(algo="hmepol", label="HMepol (bptt=full)"),
+        SimpleNamespace(algo="hmepol", label="HMepol"),
+    ]
+    styles = series_styles(groups)
+    assert len({s.colour for s in styles.values()}) == 5
+    # The main series keeps its algorithm's colour and a solid line; variants are dashed.
+    assert styles["HMepol"].colour == algo_colour("hmepol") and styles["HMepol"].linestyle == "-"
+    assert styles["Mepol"].colour == algo_colour("mepol")
+    assert all(styles[g.label].linestyle != "-" for g in groups[1:4])
+
+
+def test_a_fine_tuning_band_stays_inside_the_range_of_a_return(tmp_path, drawn_figures):
+    # Three pre-training runs near 1: the t-band would reach past 1.
+    for seed, value in enumerate((1.0, 0.9, 0.4)):
+        write_finetune_run(
+            tmp_path / "runs", algo_init="hmepol", seed=seed, returns=lambda e, t, v=value: v
+        )
+    run_report(tmp_path / "runs", tmp_path / "report")
+    for ax in _panels(drawn_figures["slope_finetune_returns.png"]):
+        [band] = _bands(ax)
+        assert band[:, 1].min() >= 0.0 and band[:, 1].max() == pytest.approx(1.0)
+        assert ax.get_ylim() == pytest.approx((-0.05, 1.05))
+
+
 def test_figure_names_of_long_labels_stay_short_and_distinct():
     from hmepol_cli.report.figures import slug
 
@@ -717,7 +942,7 @@ def test_every_caption_states_its_scale_and_a_smoke_run_says_so(tmp_path):
 
 # ------------------------------------------------------------------------------- diagnostics
 def test_drops_and_the_kl_ratio_of_the_update_before_them_by_hand(tmp_path):
-    from hmepol_cli.report.diagnostics import diagnosed, drop_table
+    from hmepol_cli.report.diagnostics import diagnosed, drop_table, pooled_drops
 
     run = write_run(tmp_path, algo="hmepol", policy="recursive", seed=0, epochs=60)
     epochs = pd.read_csv(run / "epochs.csv")
@@ -726,26 +951,39 @@ def test_drops_and_the_kl_ratio_of_the_update_before_them_by_hand(tmp_path):
     epochs.loc[epochs.epoch == 40, "entropy_c1"] -= 2.5
     epochs.loc[epochs.epoch == 10, "entropy_c1"] -= 3.0
     epochs.loc[epochs.epoch == 50, "entropy_c0"] -= 0.9
+    # Both configurations fall by 1.5 at epoch 55: two configurations' drops, one epoch's.
+    epochs.loc[epochs.epoch == 55, ["entropy_c0", "entropy_c1"]] -= 1.5
     epochs.to_csv(run / "epochs.csv", index=False)
     # Two steps an epoch, the second accepted: one-step KL 0.01, exact 0.02, except epoch 39's
-    # update (the one before the drop): exact 0.5, a ratio of 50.
+    # and 54's updates (the ones before the drops): exact 0.5, a ratio of 50.
     rows = []
     for e in range(60):
         rows.append({"epoch": e, "step": 0, "accepted": False, "kl_one_step": 9.0, "kl_exact": 9.0})
-        exact = 0.5 if e == 39 else 0.02
+        exact = 0.5 if e in (39, 54) else 0.02
         rows.append(
             {"epoch": e, "step": 1, "accepted": True, "kl_one_step": 0.01, "kl_exact": exact}
         )
     pd.DataFrame(rows).to_csv(run / "steps.csv", index=False)
     write_run(tmp_path, algo="mepol", seed=0, epochs=60)  # no steps.csv: compared beside it
     groups = group_runs(discover_runs(tmp_path)[0])
-    [hmepol] = [row for row in drop_table(diagnosed(groups)).to_dict("records") if row["drops"]]
-    assert hmepol["drop_epochs"] == "40"
+    table = drop_table(diagnosed(groups))
+    [hmepol] = [row for row in table.to_dict("records") if row["drops"]]
+    assert hmepol["drop_epochs"] == "40 55"
     # 40 is a drop of configuration 1 (2.5 nats less the ramp's step); its recovery at 41 is not.
+    # 55 is one epoch with a drop in each configuration.
+    assert (hmepol["drops"], hmepol["drops_c0"], hmepol["drops_c1"]) == (2, 1, 2)
     assert hmepol["largest_fall"] == pytest.approx(2.5 - 0.9 / 59)
     assert hmepol["kl_ratio_before_drops"] == pytest.approx(50.0)
     assert hmepol["kl_ratio_other_updates"] == pytest.approx(2.0)
     assert {g.label for g in diagnosed(groups)} == {"Mepol", "HMepol"}
+    pooled = pooled_drops(table).set_index("group")
+    assert pooled.loc["HMepol", ["runs", "runs_with_drops", "drops", "drops_c1"]].tolist() == [
+        1, 1, 2, 2,
+    ]  # fmt: skip
+    # One run of one with a drop: Wilson's interval [1 / (1 + z^2), 1], not the point 1.
+    assert pooled.loc["HMepol", "share_wilson95_high"] == 1.0
+    assert pooled.loc["HMepol", "share_wilson95_low"] == pytest.approx(1 / (1 + 1.959964**2))
+    assert pooled.loc["Mepol", "drops"] == 0 and pooled.loc["Mepol", "share_wilson95_low"] == 0
 
 
 def test_a_fine_tuning_legend_names_the_pre_training_epoch_it_started_from():

@@ -17,7 +17,9 @@ configuration; multigrid's layouts can differ, and so can its targets.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -43,6 +45,10 @@ class GoalTask:
     target: Box
     config: int
     horizon: int
+    # An episode's undiscounted return is 1 when it reached the target (the box is absorbing)
+    # and 0 otherwise, so an epoch's mean return is its success rate: the report's intervals
+    # of returns stay inside these bounds.
+    return_bounds: ClassVar[tuple[float, float]] = (0.0, 1.0)
 
     def reached(self, positions: torch.Tensor) -> torch.Tensor:
         """True where a position lies in the target box. positions (N, 2) -> (N,) bool."""
@@ -59,6 +65,7 @@ class RewardTask:
     config: int
     horizon: int
     target = None  # no target area: the environment's reward says what to do
+    return_bounds: ClassVar[tuple[float, float]] = (-math.inf, math.inf)  # any reward: no bound
     reached = None  # episodes end when the environment ends them
 
 

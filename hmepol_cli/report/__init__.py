@@ -1,7 +1,9 @@
 """``hmepol report``: aggregate finished runs into the thesis figures, tables and one HTML page.
 
-Data path: runs.py (find, load, group) -> stats.py (mean, t-intervals) -> figures.py / plots.py
-(PNG) -> summary.py (CSV, Markdown) -> html.py (index.html) -> manifest.py (report.json).
+Data path: runs.py (find, load, merge copies, group) -> stats.py (means and intervals over the
+unit of independence, seeds needed), aggregates.py (rliable, bootstrapped over runs) ->
+figures.py / plots.py (PNG) -> summary.py (CSV, Markdown; resolution.py's notes) -> html.py
+(index.html) -> manifest.py (report.json). docs/statistics.md gives every formula.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from hmepol_cli.report.runs import (
     discover_runs,
     drop_duplicate_seeds,
     group_runs,
+    merge_identical_runs,
 )
 from hmepol_cli.report.summary import ReportCounts, write_summary
 
@@ -32,7 +35,8 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     and ``report.json``, the list of those files; returns the path of ``index.html``. The files
     of an earlier report in ``out_dir`` that this one does not write again are deleted; a
     non-empty ``out_dir`` without ``report.json`` is refused. Unusable runs are skipped with a
-    warning and listed.
+    warning and listed; a run found twice (same config, seed and rows) is counted once, and the
+    page says which directories were merged.
     """
     roots = [runs_roots] if isinstance(runs_roots, str | Path) else list(runs_roots)
     roots = [Path(r) for r in roots]
@@ -48,6 +52,7 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     if not runs and not skipped:
         where = ", ".join(repr(str(r)) for r in roots)
         raise UserError(f"no runs under {where} (no directory holds a run.json)")
+    runs, merged = merge_identical_runs(runs)
     runs, duplicates = drop_duplicate_seeds(runs)
     skipped = sorted(skipped + duplicates, key=lambda s: str(s.path))
     groups = group_runs(runs)
@@ -61,9 +66,10 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
         groups=len(groups),
         skipped=len(skipped),
         figures=len(figures),
+        merged=len(merged),
     )
     index = write_index(
-        out_dir, roots, groups, finetune_runs, skipped, figures, tables, table_files, counts
+        out_dir, roots, groups, finetune_runs, skipped, merged, figures, tables, table_files, counts
     )
     write_manifest(out_dir, [f.path for f in figures] + table_files + [index], previous)
     print(f"report: {counts.text()} -> {index}")

@@ -29,7 +29,7 @@ def _interval_panel(ax, groups: list[Group], colours: dict[str, str], statistic,
 
 def draw_aggregates(groups: list[Group], colours: dict[str, str], title: str, path: Path) -> Path:
     """Left: IQM and mean per group; right: the performance profiles, on one entropy axis."""
-    scores = np.concatenate([s for g in groups for s in g.scores()])
+    scores = np.concatenate([g.scores().ravel() for g in groups])
     lo, hi = float(scores.min()), float(scores.max())
     pad = 0.05 * (hi - lo) or 0.1
     taus = np.linspace(lo - pad, hi + pad, PROFILE_POINTS)

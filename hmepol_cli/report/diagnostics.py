@@ -3,8 +3,12 @@ entropy drops, and the exact KL of each accepted update against the one-step KL 
 region judged.
 
 A *drop* is a fall of more than ``DROP_NATS`` in one configuration's entropy from one epoch to
-the next, counted from epoch ``DROP_FROM`` on (the first epochs of every run climb steeply and
-noisily). Row e of epochs.csv describes the rollout of the policy the update of epoch e - 1 made,
+the next (epoch e against epoch e - 1, in that configuration; none where either epoch lacks it),
+counted from epoch ``DROP_FROM`` on (the first epochs of every run climb steeply and noisily).
+A run's drops are counted per configuration and pooled over configurations (the epochs with a
+drop in any), and a group's pooled over its seeds, with the share of runs that had one.
+
+Row e of epochs.csv describes the rollout of the policy the update of epoch e - 1 made,
 so the update *before* a drop at row e is epoch e - 1's. Its KL ratio is kl_exact / kl_one_step
 of the last accepted off-policy step of that epoch (steps.csv): how much more the policy changed
 over whole histories than the surrogate's stored histories showed (1 for a Markovian policy,
@@ -20,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.report.runs import Group, Run
+from hmepol_cli.report.stats import proportion_ci
 from hmepol_cli.rundir import STEPS_CSV
 
 DROP_NATS = 1.0
@@ -48,13 +53,20 @@ def kl_ratio(run: Run) -> pd.Series:
     return ratio.where(kl["kl_one_step"] > 0)
 
 
-def entropy_changes(run: Run) -> pd.DataFrame:
-    """Per epoch from DROP_FROM on: the largest fall of any configuration's entropy since the
-    epoch before (``change``, nats, negative = a fall) and the configuration it fell in."""
+def config_changes(run: Run) -> pd.DataFrame:
+    """Per epoch from DROP_FROM on (index) and configuration c (column c): the change of its
+    entropy since the epoch before (nats, negative = a fall; NaN where either lacks it)."""
     epochs = run.epochs.set_index("epoch")
     columns = [f"entropy_c{c}" for c in range(run.n_configurations)]
     change = epochs[columns].astype(float).diff()
-    change = change[change.index >= DROP_FROM]
+    change.columns = range(run.n_configurations)
+    return change[change.index >= DROP_FROM]
+
+
+def entropy_changes(run: Run) -> pd.DataFrame:
+    """Per epoch from DROP_FROM on: the largest fall of any configuration's entropy since the
+    epoch before (``change``, nats, negative = a fall) and the configuration it fell in."""
+    change = config_changes(run).add_prefix("entropy_c")
     worst = change.min(axis=1)
     config = change.idxmin(axis=1).where(worst.notna())
     return pd.DataFrame({"change": worst, "config": config.str.removeprefix("entropy_c")})
@@ -68,13 +80,15 @@ def diagnosed(groups: list[Group]) -> list[Group]:
 
 
 def drop_table(groups: list[Group]) -> pd.DataFrame:
-    """One row per run: its drops (epochs), and the median KL ratio of the updates just before
-    a drop against that of every other update from DROP_FROM on."""
+    """One row per run: its drops (``drops``: epochs with a drop in any configuration;
+    ``drops_c<c>``: configuration c's), their epochs, and the median KL ratio of the updates just
+    before a drop against that of every other update from DROP_FROM on."""
     rows = []
     for group in groups:
         for run in sorted(group.runs, key=lambda r: r.seed):
             changes = entropy_changes(run)
             dropped = changes.index[changes["change"] < -DROP_NATS]
+            per_config = (config_changes(run) < -DROP_NATS).sum()
             ratio = kl_ratio(run) if has_steps(run) else pd.Series(dtype=float)
             before = ratio.reindex(dropped - 1)
             others = ratio.reindex(changes.index.difference(dropped) - 1)
@@ -86,6 +100,7 @@ def drop_table(groups: list[Group]) -> pd.DataFrame:
                     "seed": run.seed,
                     "epochs": len(run.epochs),
                     "drops": len(dropped),
+                    **{f"drops_c{c}": int(n) for c, n in per_config.items()},
                     "drop_epochs": " ".join(map(str, dropped)),
                     "largest_fall": float(-changes["change"].min()),
                     "kl_ratio_before_drops": _median(before),
@@ -93,6 +108,32 @@ def drop_table(groups: list[Group]) -> pd.DataFrame:
                     "final_entropy": run.final_entropy(),
                 }
             )
+    return pd.DataFrame(rows)
+
+
+def pooled_drops(table: pd.DataFrame) -> pd.DataFrame:
+    """Per group, :func:`drop_table`'s counts summed over its runs, their mean per run, and the
+    share of runs with a drop with Wilson's 95% interval (the run is the unit)."""
+    if table.empty:
+        return pd.DataFrame()
+    counts = [c for c in table.columns if c == "drops" or c.startswith("drops_c")]
+    rows = []
+    for (env, wind, group), runs in table.groupby(["env", "wind", "group"], sort=False):
+        hit = proportion_ci(int((runs["drops"] > 0).sum()), len(runs))
+        rows.append(
+            {
+                "env": env,
+                "wind": wind,
+                "group": group,
+                "runs": len(runs),
+                "runs_with_drops": hit.successes,
+                "share_with_drops": hit.share,
+                "share_wilson95_low": hit.low,
+                "share_wilson95_high": hit.high,
+                **{c: int(runs[c].sum()) for c in counts},
+                "drops_per_run": float(runs["drops"].mean()),
+            }
+        )
     return pd.DataFrame(rows)
 
 

@@ -2,8 +2,11 @@
 
 Every figure function takes the groups of one environment and returns :class:`FigureRecord`s
 (the PNG path and a caption that says what was compared, over how many seeds, and how).
-Curves and bars are the mean over seeds with a Student-t 95% confidence interval; a group with
-one seed has no interval and is drawn without a band.
+Curves and bars are the mean over the independent units (seeds; for fine-tuning, pre-training
+runs). What is drawn beside the mean is what their number allows: from MIN_UNITS on, the
+Student-t 95% confidence interval (inside the axes, and inside a bounded quantity's range);
+with fewer, each unit's own curve or dot, as a two-seed band (t = 12.7) would cover the axis.
+Each group has a colour of its own.
 """
 
 from __future__ import annotations
@@ -18,11 +21,13 @@ from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
+from matplotlib.collections import LineCollection, PolyCollection
 
 from hmepol_cli.algorithms import SCRATCH
 from hmepol_cli.plots import (
     BOUND_COLOUR,
     LINESTYLES,
+    OTHER_COLOURS,
     TRAJECTORIES,
     algo_colour,
     heatmap_grid,
@@ -31,9 +36,10 @@ from hmepol_cli.plots import (
     trajectory_grid,
 )
 from hmepol_cli.report.aggregate_figure import draw_aggregates
+from hmepol_cli.report.aggregates import METHOD as AGGREGATES_METHOD
 from hmepol_cli.report.diagnostics import DROP_FROM, DROP_NATS, diagnosed, draw_diagnostics
 from hmepol_cli.report.runs import ALGO_ORDER, Group, Run, algo_label, format_wind
-from hmepol_cli.report.stats import curve_ci, mean_ci
+from hmepol_cli.report.stats import MIN_UNITS, UNBOUNDED, curve_ci, mean_ci, t_quantile
 
 MAX_CONFIG_BARS = 5  # more configurations than this (multigrid): bars for average and config 0
 MAX_TRAJECTORY_SEEDS = 3
@@ -77,20 +83,28 @@ class Style:
 
 # ------------------------------------------------------------------------------------- helpers
 def series_styles(groups: Iterable[Group]) -> dict[str, Style]:
-    """label -> style: the algorithm's colour; a second series of one algorithm gets a new dash
-    (and hatching on bars)."""
+    """label -> style, a colour of its own for every series: an algorithm's main series (the
+    one labelled by the algorithm alone, else its first) takes the algorithm's colour, its
+    variants the next unused colours of OTHER_COLOURS; a variant also gets a dash (and hatching
+    on bars), so that it reads as one of its algorithm's."""
+    groups = list(dict((g.label, g) for g in groups).values())
+    main: dict[str, str] = {}
+    for group in groups:
+        main.setdefault(group.algo, group.label)
+        if group.label == algo_label(group.algo):
+            main[group.algo] = group.label
+    spare = [c for c in OTHER_COLOURS if c not in {algo_colour(a) for a in main}]
     styles: dict[str, Style] = {}
     per_algo: dict[str, int] = {}
+    variants = 0
     for group in groups:
-        if group.label in styles:
-            continue
-        k = per_algo.get(group.algo, 0)
-        per_algo[group.algo] = k + 1
+        if group.label == main[group.algo]:
+            k, colour = 0, algo_colour(group.algo)
+        else:
+            k = per_algo[group.algo] = per_algo.get(group.algo, 0) + 1
+            colour, variants = spare[variants % len(spare)], variants + 1
         styles[group.label] = Style(
-            algo_colour(group.algo),
-            LINESTYLES[k % len(LINESTYLES)],
-            HATCHES[k % len(HATCHES)],
-            group.label,
+            colour, LINESTYLES[k % len(LINESTYLES)], HATCHES[k % len(HATCHES)], group.label
         )
     return styles
 
@@ -125,8 +139,10 @@ def at_wind(groups: list[Group], wind: float) -> list[Group]:
 
 
 def n_text(n: int) -> str:
-    """Legend suffix: the number of seeds, and that one seed has no interval."""
-    return f"n={n}" if n > 1 else f"n={n}, no CI"
+    """Legend suffix: the number of seeds, and that fewer than MIN_UNITS have no interval."""
+    if n >= MIN_UNITS:
+        return f"n={n}"
+    return f"n={n}, no CI" if n == 1 else f"n={n}, each seed drawn"
 
 
 def wind_tag(wind: float, several: bool) -> str:
@@ -153,9 +169,36 @@ def seeds_text(groups: list[Group]) -> str:
         text = f"{n} seed{'s' if n > 1 else ''}" + (" each" if len(counts) > 1 else "")
     else:
         text = ", ".join(f"{label} {n} seed{'s' if n > 1 else ''}" for label, n in counts.items())
-    if any(n < 2 for n in counts.values()):
-        text += " (a single seed has no confidence interval: no band)"
     return text
+
+
+def spread_text(
+    groups: list[Group],
+    interval: str = "band",
+    instead: str = "thin lines: each seed's own curve",
+) -> str:
+    """What is drawn beside the means: '<interval>: Student-t 95% CI over seeds' from MIN_UNITS
+    seeds on, ``instead`` under it, or both, by group (with the seed counts)."""
+    few = [g for g in groups if len(g.runs) < MIN_UNITS]
+    ci = f"{interval}: Student-t 95% CI over seeds"
+    seeds = f"{instead} (under {MIN_UNITS} seeds a t-interval on one degree of freedom, "
+    seeds += f"±{t_quantile(1):.1f} standard errors, would cover the axis)"
+    if not few:
+        text = ci
+    elif len(few) == len(groups):
+        text = seeds
+    else:
+        text = f"{ci} where a group has {MIN_UNITS} seeds or more; {seeds}"
+    return f"{text} ({seeds_text(groups)})"
+
+
+def spread_title(groups: list[Group]) -> str:
+    """The title's '(mean, 95% CI over seeds)', or '(mean and each seed)' under MIN_UNITS."""
+    if all(len(g.runs) >= MIN_UNITS for g in groups):
+        return "(mean, 95% CI over seeds)"
+    if all(len(g.runs) < MIN_UNITS for g in groups):
+        return "(mean and each seed)"
+    return "(mean; 95% CI over seeds, or each seed under 3)"
 
 
 def _pretraining_scale(group: Group) -> str:
@@ -221,37 +264,79 @@ def isolated(values: np.ndarray) -> np.ndarray:
 
 
 def plot_mean(
-    ax, x: np.ndarray, mean: np.ndarray, half: np.ndarray, colour: str, ls, label: str
+    ax,
+    x: np.ndarray,
+    mean: np.ndarray,
+    half: np.ndarray,
+    colour: str,
+    ls,
+    label: str,
+    bounds: tuple[float, float] = UNBOUNDED,
 ) -> None:
-    """Mean curve (n_points,) with its confidence band of half-width ``half``.
+    """Mean curve (n_points,) with its confidence band of half-width ``half``, cut to ``bounds``
+    (the values the quantity can take).
 
     A point with no neighbour (a run of one epoch, a configuration drawn in one epoch between
     gaps) gets a marker, and its interval a bar: a line and a band through one point are empty.
     """
+    low, high = np.clip(mean - half, *bounds), np.clip(mean + half, *bounds)
     ax.plot(x, mean, color=colour, ls=ls, lw=1.5, label=label)
     if np.isfinite(half).any():
-        ax.fill_between(x, mean - half, mean + half, color=colour, alpha=0.2, lw=0)
+        ax.fill_between(x, low, high, color=colour, alpha=0.2, lw=0)
     alone = isolated(mean)
     ax.plot(x[alone], mean[alone], ls="none", marker="o", ms=5, color=colour)
     bar = alone & np.isfinite(half)
-    ax.vlines(x[bar], (mean - half)[bar], (mean + half)[bar], color=colour, alpha=0.4)
+    ax.vlines(x[bar], low[bar], high[bar], color=colour, alpha=0.4)
+
+
+def plot_units(
+    ax,
+    x: np.ndarray,
+    curves: np.ndarray,
+    colour: str,
+    ls,
+    label: str,
+    bounds: tuple[float, float] = UNBOUNDED,
+) -> None:
+    """The mean of the curves (n_units, n_points) of independent units, and what their number
+    allows beside it: under MIN_UNITS, each unit's own curve (thin), as a t-band on one degree of
+    freedom (t = 12.7) would cover the axis; from MIN_UNITS on, the Student-t 95% band."""
+    mean, half, n = curve_ci(curves)
+    if curves.shape[0] > 1 and curves.shape[0] < MIN_UNITS:
+        for curve in curves:
+            ax.plot(x, curve, color=colour, ls="-", lw=0.6, alpha=0.5)
+    half = np.where(n >= MIN_UNITS, half, np.nan)  # also where a point has fewer units
+    plot_mean(ax, x, mean, half, colour, ls, label, bounds)
 
 
 def draw_curve(ax, group: Group, style: Style, config: int | None) -> None:
     epochs, curves = group.curves(config)
     if curves.size == 0:
         return
-    mean, half, _ = curve_ci(curves)
     label = f"{style.label} ({n_text(len(group.runs))})"
-    plot_mean(ax, epochs, mean, half, style.colour, style.linestyle, label)
+    plot_units(ax, epochs, curves, style.colour, style.linestyle, label)
+
+
+def _band_values(ax) -> list[np.ndarray]:
+    """The y of every band (fill_between) and interval bar (vlines) drawn on ``ax``."""
+    return [
+        np.asarray(path.vertices[:, 1], dtype=float)
+        for collection in ax.collections
+        if isinstance(collection, PolyCollection | LineCollection)
+        for path in collection.get_paths()
+    ]
 
 
 def fit_to_lines(axes) -> None:
-    """One y-range for ``axes`` (one panel, or panels that share their y-axis) from their mean
-    lines and bounds, not the bands: with two seeds a Student-t band is 12.7 standard errors wide
-    and would flatten every curve (the band is clipped, not hidden)."""
+    """One y-range for ``axes`` (one panel, or panels that share their y-axis) that holds their
+    lines (means, seeds' own curves, bounds) and bands. Bands are drawn only from MIN_UNITS
+    seeds on, where they are a few standard errors wide, so they fit without flattening the
+    curves."""
     lines = [line for ax in np.ravel(axes) for line in ax.get_lines()]
-    values = np.concatenate([np.asarray(line.get_ydata(), dtype=float) for line in lines] + [[]])
+    bands = [v for ax in np.ravel(axes) for v in _band_values(ax)]
+    values = np.concatenate(
+        [np.asarray(line.get_ydata(), dtype=float) for line in lines] + bands + [[]]
+    )
     values = values[np.isfinite(values)]
     if values.size == 0:
         return
@@ -304,14 +389,14 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     compared = " vs ".join(styles)
-    fig.suptitle(f"{env}: average entropy per epoch\n(mean, 95% CI over seeds)")
+    fig.suptitle(f"{env}: average entropy per epoch\n{spread_title(groups)}")
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_entropy_epochs.png")
     caption = (
         f"Average state entropy (kNN estimate, nats) at the start of each epoch, mean over "
         f"mini-batches of all configurations, for {compared}"
         + (f", one panel per wind force ({', '.join(map(format_wind, winds))})" if several else "")
-        + f". Line: mean over seeds; band: Student-t 95% CI ({seeds_text(groups)}). "
+        + f". Line: mean over seeds; {spread_text(groups)}. "
         "Dashed: log(free area) weighted by p_M, the entropy of a uniform visitation."
     )
     return [
@@ -354,13 +439,13 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
                 ax.set_ylabel("entropy (nats)")
             ax.grid(alpha=0.3)
     compared = " vs ".join(styles)
-    fig.suptitle(f"{env}: entropy per epoch in each configuration (mean, 95% CI over seeds)")
+    fig.suptitle(f"{env}: entropy per epoch in each configuration {spread_title(groups)}")
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_entropy_epochs_by_config.png")
     caption = (
         f"State entropy (nats) per epoch computed only on the mini-batches drawn in each "
-        f"configuration, for {compared}. Line: mean over seeds; band: Student-t 95% CI "
-        f"({seeds_text(groups)}); gaps are epochs where no seed drew that configuration, a dot an "
+        f"configuration, for {compared}. Line: mean over seeds; {spread_text(groups)}; gaps "
+        "are epochs where no seed drew that configuration, a dot an "
         "epoch between gaps. Each panel has its own y-scale. Dashed: log(free area) of the "
         "configuration."
     )
@@ -416,8 +501,9 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                     edgecolor="white",
                     label=f"{label} ({n_text(ci.n)})" if x == 0 else None,
                 )
-                if np.isfinite(ci.half_width):
+                if ci.n >= MIN_UNITS:  # fewer: the seeds' dots say more than a t = 12.7 bar
                     ax.errorbar(pos, ci.mean, yerr=ci.half_width, color="black", capsize=4, lw=1.2)
+                    shown_values += [ci.low, ci.high]
                 jitter = rng.uniform(-0.2, 0.2, finals.size) * width
                 ax.scatter(
                     pos + jitter,
@@ -442,7 +528,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                     lw=1.0,
                     label="log(free area)" if x == 0 else None,
                 )
-        # Limits from the bars, the seed dots and the bounds: a two-seed t-interval is clipped.
+        # Limits from the bars, their error bars, the seed dots and the bounds.
         shown_values += (
             [p.get_height() for p in ax.patches]
             + [float(v) for c in ax.collections for v in np.asarray(c.get_offsets())[:, 1]]
@@ -461,7 +547,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     compared = " vs ".join(styles)
-    fig.suptitle(f"{env}: entropy at the end of training (mean, 95% CI over seeds)")
+    fig.suptitle(f"{env}: entropy at the end of training {spread_title(groups)}")
     _legend(fig, axes)
     path = save(fig, out_dir / f"{env}_final_entropy_bars.png")
     shown = "the average over configurations and " + (
@@ -471,8 +557,8 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     )
     caption = (
         f"Final entropy (nats; per seed the mean over the last 10% of epochs) of {compared}: "
-        f"{shown}. Bars: mean over seeds; error bars: Student-t 95% CI ({seeds_text(groups)}); "
-        "dots: individual seeds. Dashed: log(free area), the entropy of a uniform visitation "
+        f"{shown}. Bars: mean over seeds; {spread_text(groups, 'error bars', 'no error bars')}. "
+        "Dots: individual seeds. Dashed: log(free area), the entropy of a uniform visitation "
         "(weighted by p_M for the average)."
     )
     return [
@@ -504,10 +590,16 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
         offset = (s - (len(styles) - 1) / 2) * 0.01 * span  # keep error bars apart
         order = np.argsort(xs)
         x = np.array(xs)[order] + offset
+        # Under MIN_UNITS seeds the seeds themselves, not a t = 12.7 bar.
+        few = np.array(ns)[order] < MIN_UNITS
+        for group in (g for g in groups if g.label == label and len(g.runs) < MIN_UNITS):
+            finals = np.array(list(group.finals().values()))
+            ax.scatter(np.full(finals.size, group.wind + offset), finals, s=10,
+                       color=style.colour, alpha=0.6, lw=0, zorder=3)  # fmt: skip
         ax.errorbar(
             x,
             np.array(means)[order],
-            yerr=np.nan_to_num(np.array(halves)[order]),
+            yerr=np.where(few, 0.0, np.nan_to_num(np.array(halves)[order])),
             color=style.colour,
             ls=style.linestyle,
             marker="o",
@@ -527,8 +619,9 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
     path = save(fig, out_dir / f"{env}_entropy_vs_wind.png")
     caption = (
         f"Average entropy at convergence (nats; per seed the mean over the last 10% of epochs) "
-        f"against the wind force, {compared}. Markers: mean over seeds; error bars: Student-t 95% "
-        f"CI ({seeds_text(groups)}). Dashed: log(free area) weighted by p_M."
+        f"against the wind force, {compared}. Markers: mean over seeds; "
+        f"{spread_text(groups, 'error bars', 'small dots: each seed')}. Dashed: log(free area) "
+        "weighted by p_M."
     )
     return [
         FigureRecord(
@@ -562,15 +655,14 @@ def per_wind(
 def aggregates_figure(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
     """rliable's IQM and mean and the performance profile of the final entropies, per wind."""
     records = []
+    styles = series_styles(groups)  # the env's: a group's colour is the same in every figure
     for _, members, title, name in per_wind(env, groups, "aggregates"):
-        styles = series_styles(members)
         path = out_dir / name
         draw_aggregates(members, {k: s.colour for k, s in styles.items()}, title, path)
         caption = (
             "rliable's aggregates of the final entropies (Agarwal et al., 2021), a score being one "
             "seed's final entropy in one configuration. Left: interquartile mean (IQM) and mean of "
-            "all seed x configuration scores with stratified-bootstrap 95% intervals (each "
-            "configuration's seeds resampled on their own, 2,000 percentile resamples). Right: "
+            f"all seed x configuration scores with 95% intervals by a {AGGREGATES_METHOD}. Right: "
             "performance profile, the share of scores above each entropy, with pointwise "
             "intervals. The probability of improvement of each pair is in differences.csv "
             f"(p_improvement) and the table below. Seeds: {seeds_text(members)}."
@@ -586,7 +678,7 @@ def diagnostics_figure(env: str, groups: list[Group], out_dir: Path) -> list[Fig
         members = diagnosed(at)
         if not members:
             continue
-        styles = series_styles(members)
+        styles = series_styles(groups)  # the env's: a group's colour is the same in every figure
         path = out_dir / name
         draw_diagnostics(members, styles, title, path)
         caption = (
@@ -689,7 +781,9 @@ def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRec
 
 # ------------------------------------------------------------------------------- fine-tuning
 def finetune_frame(runs: list[Run]) -> pd.DataFrame:
-    """All fine-tuning returns, one row per (run, seed, target, config, epoch)."""
+    """All fine-tuning returns, one row per (run, seed, target, config, epoch), with the
+    independent unit of each (the pre-training run, or the fine-tuning run from scratch) and the
+    bounds of its return."""
     frames = []
     for run in runs:
         if run.finetune is None:
@@ -698,17 +792,65 @@ def finetune_frame(runs: list[Run]) -> pd.DataFrame:
         frame["env"] = run.env
         frame["wind"] = run.wind
         frame["run"] = str(run.path)
+        frame["pretraining_run"] = run.pretraining_run
+        frame["unit"] = run.independent_unit
+        frame["bound_low"], frame["bound_high"] = run.return_bounds
         frames.append(frame)
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
-def finetune_curves(frame: pd.DataFrame) -> dict[tuple[str, int], tuple[np.ndarray, np.ndarray]]:
-    """(algo_init, config) -> (epochs, curves (n_seeds x n_targets, n_epochs))."""
+@dataclass(frozen=True)
+class FinetuneCurves:
+    """The return curves of one initialisation in one configuration."""
+
+    epochs: np.ndarray  # (n_epochs,)
+    curves: np.ndarray  # (n_curves, n_epochs): one per (run, seed, target)
+    units: np.ndarray  # (n_curves,): the independent unit each curve is nested in
+    bounds: tuple[float, float]  # of a return: every run's range together
+
+    def unit_curves(self) -> np.ndarray:
+        """Each unit's mean curve over its targets and seeds, (n_units, n_epochs)."""
+        frame = pd.DataFrame(self.curves)
+        return frame.groupby(self.units, sort=False).mean().to_numpy(float)
+
+
+def finetune_curves(frame: pd.DataFrame) -> dict[tuple[str, int], FinetuneCurves]:
+    """(algo_init, config) -> its curves."""
     out = {}
     for (init, config), part in frame.groupby(["algo_init", "config"], sort=False):
-        table = part.pivot_table(index="epoch", columns=["run", "seed", "target"], values="return")
-        out[(str(init), int(config))] = (table.index.to_numpy(float), table.to_numpy(float).T)
+        table = part.pivot_table(
+            index="epoch", columns=["unit", "run", "seed", "target"], values="return"
+        )
+        out[(str(init), int(config))] = FinetuneCurves(
+            table.index.to_numpy(float),
+            table.to_numpy(float).T,
+            table.columns.get_level_values("unit").to_numpy(),
+            (float(part["bound_low"].min()), float(part["bound_high"].max())),
+        )
     return out
+
+
+def units_text(part: pd.DataFrame, init: str) -> str:
+    """'2 pre-training runs x 1 fine-tuning seed x 5 targets' of one initialisation."""
+    rows = part[part["algo_init"] == init]
+
+    def count(n: int, what: str) -> str:
+        return f"{n} {what}{'s' if n != 1 else ''}"
+
+    seeds = count(rows["seed"].nunique(), "fine-tuning seed")
+    targets = count(rows["target"].nunique(), "target")
+    if init == SCRATCH.name:
+        return f"{count(rows['run'].nunique(), 'fine-tuning run')} ({seeds}) x {targets}"
+    return f"{count(rows['unit'].nunique(), 'pre-training run')} x {seeds} x {targets}"
+
+
+def _axis_for(bounds: tuple[float, float]) -> tuple[float, float] | None:
+    """y-limits a little outside a bounded quantity's range (None: unbounded, autoscale)."""
+    low, high = bounds
+    if not (np.isfinite(low) and np.isfinite(high)):
+        return None
+    pad = 0.05 * (high - low)
+    return low - pad, high + pad
 
 
 def _init_epochs(frame: pd.DataFrame, init: str) -> str:
@@ -742,30 +884,37 @@ def finetune_returns(
             for init in inits:
                 if (init, config) not in curves:
                     continue
-                epochs, data = curves[(init, config)]
-                mean, half, _ = curve_ci(data)
+                drawn = curves[(init, config)]
+                units = drawn.unit_curves()
                 name = "TRPO from scratch" if init == "scratch" else f"{algo_label(init)} init"
-                label = f"{name}{_init_epochs(part, init)} (n={data.shape[0]})"
-                plot_mean(ax, epochs, mean, half, algo_colour(init), "-", label)
+                label = f"{name}{_init_epochs(part, init)} (n={units.shape[0]})"
+                colour = algo_colour(init)
+                plot_units(ax, drawn.epochs, units, colour, "-", label, drawn.bounds)
             title = names[config] if config < len(names) else f"{config}"
             ax.set_title(f"config {config}: {title}", fontsize=10)
-            ax.set_ylim(-0.05, 1.05)  # a return is the share of episodes that reached the goal
+            limits = _axis_for((part["bound_low"].min(), part["bound_high"].max()))
+            if limits is not None:  # a goal task's return is a share of episodes: [0, 1]
+                ax.set_ylim(*limits)
             ax.set_xlabel("fine-tuning epoch")
             ax.set_ylabel("average return")
             ax.grid(alpha=0.3)
         fig.suptitle(f"{env}{wind_title(wind, several)}: TRPO fine-tuning on goal reaching")
         _legend(fig, axes)
         path = save(fig, out_dir / f"{env}{wind_tag(wind, several)}_finetune_returns.png")
-        n_seeds = part.groupby("algo_init")["seed"].nunique().to_dict()
-        n_targets = part.groupby("algo_init")["target"].nunique().to_dict()
-        who = ", ".join(
-            f"{algo_label(i)}: {n_seeds.get(i, 0)} seeds x {n_targets.get(i, 0)} targets"
-            for i in inits
+        who = "; ".join(f"{algo_label(i)}: {units_text(part, i)}" for i in inits)
+        low, high = part["bound_low"].min(), part["bound_high"].max()
+        cut = (
+            f", cut to the return's range [{low:g}, {high:g}]"
+            if np.isfinite([low, high]).all()
+            else ""
         )
         caption = (
             "Average return per epoch of TRPO on a sparse goal-reaching task, per configuration, "
-            "started from a pre-trained policy or from scratch. Line: mean over every (seed, "
-            f"target area) curve; band: Student-t 95% CI over those curves ({who})."
+            "started from a pre-trained policy or from scratch. The unit of independence is the "
+            "pre-training run (from scratch, the fine-tuning run): its targets and fine-tuning "
+            "seeds are nested in it. Line: mean over the units of each unit's mean curve; with "
+            f"fewer than {MIN_UNITS} units, thin lines: each unit's curve; from {MIN_UNITS} on, "
+            f"band: Student-t 95% CI over the units{cut} ({who})."
             + finetune_scale([r for r in runs if r.env == env])
         )
         records.append(

@@ -6,13 +6,15 @@ from __future__ import annotations
 import datetime as dt
 import html
 import os
+import re
 from pathlib import Path
 
 import pandas as pd
 
 from hmepol_cli.report.figures import FigureRecord
-from hmepol_cli.report.runs import Group, SkippedRun, format_wind
-from hmepol_cli.report.summary import ReportCounts, format_number
+from hmepol_cli.report.runs import Group, MergedRun, SkippedRun, format_wind
+from hmepol_cli.report.stats import MIN_UNITS
+from hmepol_cli.report.summary import ReportCounts, format_number, table_sections
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em;
@@ -29,8 +31,14 @@ td.text, th.text { text-align: left; }
 .warn { color: #a40; }
 .wide { overflow-x: auto; max-width: 100%; }
 .notice { background: #fff4d6; border: 1px solid #e0b84a; padding: 0.6em 1em; }
+.resolution { font-size: 0.92em; color: #444; font-style: italic; }
 code { background: #f4f4f4; padding: 0 0.2em; }
 """
+
+
+def _inline_code(text: str) -> str:
+    """Plain text with Markdown's `code` spans, as HTML."""
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(text))
 
 
 def _table(frame: pd.DataFrame, digits: int = 3) -> str:
@@ -71,9 +79,15 @@ def scale_notice(groups: list[Group], finetune_runs: list) -> str:
         for g in groups
         if len(g.runs) < SMOKE_SEEDS or min(len(r.epochs) for r in g.runs) < SMOKE_EPOCHS
     ]
-    finetune_seeds = {r.seed for r in finetune_runs}
-    if finetune_runs and len(finetune_seeds) < SMOKE_SEEDS:
-        small.append(f"fine-tuning: {len(finetune_seeds)} seed(s)")
+    units: dict[str, set[str]] = {}  # per initialisation, its independent units
+    for run in finetune_runs:
+        units.setdefault(run.algo, set()).add(run.independent_unit)
+    fewest = min((len(u) for u in units.values()), default=SMOKE_SEEDS)
+    if fewest < SMOKE_SEEDS:
+        small.append(
+            f"fine-tuning: {fewest} pre-training run{'s' if fewest != 1 else ''} (or runs from "
+            "scratch) for an initialisation"
+        )
     if not small:
         return ""
     return (
@@ -95,12 +109,39 @@ def _relative(path: Path, start: Path) -> str:
     return Path(os.path.relpath(path, start)).as_posix()
 
 
+def merged_list(merged: list[MergedRun], roots: list[Path]) -> list[str]:
+    """The section on runs found twice: each copy beside the directory kept, both named from
+    the folder that holds every runs root (so that two roots' same names read apart)."""
+    if not merged:
+        return []
+    resolved = [Path(r).resolve() for r in roots]
+    common = Path(os.path.commonpath(resolved))
+    if common in resolved:  # one root, or one inside another: name that root too
+        common = common.parent
+    e = html.escape
+
+    def name(path: Path) -> str:
+        return e(_relative(Path(path).resolve(), common))
+
+    items = [f"<li><code>{name(m.path)}</code> = <code>{name(m.kept)}</code></li>" for m in merged]
+    return [
+        "<h2>Merged runs</h2>",
+        f"<p>{len(merged)} run director{'y holds' if len(merged) == 1 else 'ies hold'} the same "
+        "run as another (same config, seed and rows): each run is counted once, from the "
+        "directory on the right.</p>",
+        "<ul>",
+        *items,
+        "</ul>",
+    ]
+
+
 def write_index(
     out_dir: Path,
     runs_roots: list[Path],
     groups: list[Group],
     finetune_runs: list,
     skipped: list[SkippedRun],
+    merged: list[MergedRun],
     figures: list[FigureRecord],
     tables: dict[str, pd.DataFrame],
     table_files: list[Path],
@@ -120,13 +161,17 @@ def write_index(
         f"{dt.datetime.now().strftime('%Y-%m-%d %H:%M')}: {counts.text()} "
         f"({counts.pretraining_runs} pre-training runs in {counts.groups} groups, "
         f"{counts.finetune_runs} fine-tuning runs).</p>",
-        "<p>Entropies are kNN estimates in nats. Curves and bars show the mean over seeds with a "
-        "Student-t 95% confidence interval (none with a single seed). "
-        "The final entropy of a run is "
+        "<p>Entropies are kNN estimates in nats. Every interval is taken over the unit of "
+        "independence: the seed (one pre-training run) for entropies, and for fine-tuning the "
+        "pre-training run the policy came from, its targets and fine-tuning seeds nested in it. "
+        f"Curves and bars show the mean over those units; from {MIN_UNITS} units on with a "
+        f"Student-t 95% confidence interval, with fewer each unit's own curve or dot (with two, "
+        "t = 12.7 and the band would cover the axis). Intervals of a bounded quantity (a goal "
+        "task's return, a share) stay inside its bounds. The final entropy of a run is "
         "its mean over the last 10% of epochs. The dashed line log(free area) is the entropy of a "
         "uniform visitation of the free space, the highest any policy can reach. Beside them, "
         "rliable's aggregates (Agarwal et al., 2021): interquartile mean, mean and probability "
-        "of improvement with stratified-bootstrap 95% intervals, and performance profiles.</p>",
+        "of improvement with bootstrap 95% intervals over runs, and performance profiles.</p>",
         scale_notice(groups, finetune_runs),
         "<h2>Runs</h2>",
     ]
@@ -154,6 +199,7 @@ def write_index(
         parts.append("</ul>")
     else:
         parts.append("<p>None.</p>")
+    parts += merged_list(merged, runs_roots)
 
     for env in dict.fromkeys(f.env for f in figures):
         parts.append(f"<h2>Environment: {e(env)}</h2>")
@@ -170,43 +216,14 @@ def write_index(
         parts.append("<p>No figures: no usable runs.</p>")
 
     parts.append("<h2>Summary</h2>")
-    parts.append("<h3>Final entropy per group and configuration (nats)</h3>")
-    parts.append(
-        "<p>Mean and Student-t 95% CI over seeds; IQM and mean with stratified-bootstrap 95% "
-        "intervals (<code>*_boot95_*</code>; the average row pools every seed x configuration "
-        "score).</p>"
-    )
-    parts.append(_table(tables.get("summary", pd.DataFrame())))
-    parts.append("<h3>Differences between algorithms (nats)</h3>")
-    parts.append(
-        "<p>Final entropy of the later algorithm minus the earlier one (order Mepol, α-Mepol, "
-        "HMepol), in the same environment and wind. 95% CI: paired t-interval on per-seed "
-        "differences when both groups ran the same seeds, Welch's t-interval otherwise "
-        "(column <code>method</code>). <code>p_improvement</code>: the probability that a run "
-        "of the later algorithm scores higher than a run of the earlier (per configuration the "
-        "share of seed pairs, ties one half, averaged over configurations), with its "
-        "stratified-bootstrap 95% interval.</p>"
-    )
-    parts.append(_table(tables.get("differences", pd.DataFrame())))
-    finetune = tables.get("finetune", pd.DataFrame())
-    if not finetune.empty:
-        parts.append("<h3>Fine-tuning returns</h3>")
-        parts.append(
-            "<p>Final return: per (seed, target) curve the mean over the last 10% of epochs, then "
-            "mean and 95% t-interval over curves. Last column: first epoch at which the mean curve "
-            "reaches the final mean return of the Mepol-initialised run.</p>"
-        )
-        parts.append(_table(finetune))
-    drops = tables.get("drops", pd.DataFrame())
-    if not drops.empty:
-        parts.append("<h3>Drops and the KL of the updates before them</h3>")
-        parts.append(
-            "<p>Runs made with <code>diagnostics=true</code>: per run, its single-epoch falls "
-            "of more than 1 nat in one configuration's entropy from epoch 30 on, and the median "
-            "exact / one-step KL ratio of the accepted updates just before them and of the "
-            "others.</p>"
-        )
-        parts.append(_table(drops))
+    for name, title, caption, notice, line in table_sections(tables):
+        parts.append(f"<h3>{e(title)}</h3>")
+        parts.append(f"<p>{_inline_code(caption)}</p>")
+        if notice:
+            parts.append(f'<p class="notice"><strong>{_inline_code(notice)}</strong></p>')
+        parts.append(_table(tables[name]))
+        if line:
+            parts.append(f'<p class="resolution">{_inline_code(line)}</p>')
     links = [e(_relative(path, out_dir)) for path in table_files]
     parts.append(
         "<p>Tables as files: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>"

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import hashlib
 import io
 import json
 import math
@@ -28,9 +29,11 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
+from hmepol_cli.finetune.task import GoalTask, RewardTask
 from hmepol_cli.report.stats import final_value
 from hmepol_cli.rundir import (
     BATCHES_CSV,
+    CHECKPOINT,
     CONFIG,
     EPOCHS_CSV,
     EVAL_DIR,
@@ -67,6 +70,10 @@ RUN_SPECIFIC_KEYS = {
     "env.wind",
 }
 RUN_SPECIFIC_PREFIXES = ("hydra", "logger.", "checkpoint.", "eval.plot_")
+# Not what a run is, for telling two copies of one run apart: where a fine-tuning wrote, and how
+# long each epoch took on its machine.
+OUTPUT_KEYS = ("output_dir",)
+TIMING_COLUMNS = ("seconds", "wall_time")
 
 # Short names of the keys that usually vary, for labels and table columns.
 SHORT_NAMES = {
@@ -99,6 +106,15 @@ class RunError(Exception):
 class SkippedRun:
     path: Path
     reason: str
+
+
+@dataclass(frozen=True)
+class MergedRun:
+    """A run directory that holds the same run as ``kept`` (same config, seed and rows): the run
+    is counted once."""
+
+    path: Path
+    kept: Path
 
 
 @dataclass
@@ -176,6 +192,35 @@ class Run:
     def is_pretraining(self) -> bool:
         return self.epochs is not None and self.finetune is None
 
+    @property
+    def pretraining_run(self) -> str | None:
+        """The directory of the pre-training run a fine-tuning started from (its ``init``
+        without a kept checkpoint's ``@<epochs>`` or file name); None from scratch."""
+        init = str(self.meta.get("init") or self.config.get("init") or "none").strip()
+        if self.finetune is None or init.lower() in ("none", "null", "", SCRATCH.name):
+            return None
+        path = Path(init.partition("@")[0])
+        if path.suffix == CHECKPOINT.suffix:  # a checkpoint file: <run>/checkpoints/<name>.pt
+            path = path.parent.parent if path.parent.name == CHECKPOINT.parent.name else path.parent
+        return str(path)
+
+    @property
+    def independent_unit(self) -> str:
+        """What a fine-tuning run is one independent draw of: the pre-training run its policy
+        came from (its targets and fine-tuning seeds are nested in it), or, from scratch, the
+        fine-tuning run itself."""
+        return self.pretraining_run or str(self.path)
+
+    @property
+    def return_bounds(self) -> tuple[float, float]:
+        """The range a fine-tuning's returns can take: a goal task's [0, 1] (its rows record a
+        success rate), else none (a world's own reward)."""
+        rows = self.finetune
+        if rows is not None and "success_rate" in rows:
+            if np.isfinite(pd.to_numeric(rows["success_rate"], errors="coerce")).all():
+                return GoalTask.return_bounds
+        return RewardTask.return_bounds
+
     def entropy_curve(self, config: int | None = None) -> pd.Series:
         """Entropy per epoch (nats), indexed by epoch: average (None) or one configuration."""
         column = "entropy" if config is None else f"entropy_c{config}"
@@ -244,16 +289,14 @@ class Group:
         """Final entropy of every seed, {seed: nats}."""
         return {r.seed: r.final_entropy(config) for r in self.runs}
 
-    def scores(self, config: int | None = None) -> list[np.ndarray]:
-        """The score matrix of rliable's aggregates: one array of finite final entropies (one
-        per seed, seed order) per configuration, or only ``config``'s."""
+    def scores(self, config: int | None = None) -> np.ndarray:
+        """The score matrix of rliable's aggregates, (n_seeds, n_configurations) in seed order:
+        final entropies, a row per run (one column: ``config``'s). A run without a finite score
+        in some configuration (never drawn there) is left out, as its row is incomplete."""
         configs = range(self.n_configurations) if config is None else [config]
-        out = []
-        for c in configs:
-            finals = self.finals(c)
-            values = np.array([finals[s] for s in sorted(finals)], dtype=float)
-            out.append(values[np.isfinite(values)])
-        return out
+        finals = [self.finals(c) for c in configs]
+        matrix = np.array([[f[s] for f in finals] for s in self.seeds], dtype=float)
+        return matrix[np.isfinite(matrix).all(axis=1)].reshape(-1, len(finals))
 
     def curves(self, config: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Entropy curves of all seeds aligned on epoch: (epochs,), (n_seeds, n_epochs)."""
@@ -559,6 +602,39 @@ def _completeness_text(run: Run) -> str:
         ended = dt.datetime.fromtimestamp(wall_time).isoformat(sep=" ", timespec="seconds")
         text += f", last epoch ended {ended}"
     return text
+
+
+def _fingerprint(run: Run) -> tuple:
+    """What makes two directories the same run: kind, config (how it was executed and where it
+    wrote aside), effective wind, seed, and the rows it wrote (timings aside)."""
+    config = tuple(
+        sorted(
+            (key, repr(value))
+            for key, value in run.config.items()
+            if not _is_run_specific(key) and key not in OUTPUT_KEYS
+        )
+    )
+    rows = run.epochs if run.finetune is None else run.finetune
+    rows = rows.drop(columns=[c for c in TIMING_COLUMNS if c in rows]).reset_index(drop=True)
+    digest = hashlib.sha256(repr(list(rows.columns)).encode())
+    digest.update(pd.util.hash_pandas_object(rows, index=False).to_numpy().tobytes())
+    kind = "pretraining" if run.finetune is None else "finetune"
+    return kind, config, repr(run.wind), run.seed, digest.hexdigest()
+
+
+def merge_identical_runs(runs: list[Run]) -> tuple[list[Run], list[MergedRun]]:
+    """Keep one of the directories that hold the same run (:func:`_fingerprint`): found in two
+    input folders (a copy, one run listed twice), it is one draw and is counted once. The one
+    kept is the one :func:`drop_duplicate_seeds` would keep (the latest, then path order)."""
+    same: dict[tuple, list[Run]] = {}
+    for run in sorted(runs, key=lambda r: str(r.path)):
+        same.setdefault(_fingerprint(run), []).append(run)
+    merged = []
+    for copies in same.values():
+        kept = max(copies, key=lambda r: r.completeness)
+        merged += [MergedRun(r.path, kept.path) for r in copies if r is not kept]
+    left_out = {m.path for m in merged}
+    return [r for r in runs if r.path not in left_out], merged
 
 
 def drop_duplicate_seeds(runs: list[Run]) -> tuple[list[Run], list[SkippedRun]]:

@@ -12,11 +12,30 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from hmepol_cli.algorithms import SCRATCH
+from hmepol_cli.report.aggregates import METHOD as AGGREGATES_METHOD
 from hmepol_cli.report.aggregates import improvement_interval, iqm_interval, mean_interval
-from hmepol_cli.report.diagnostics import DROP_FROM, DROP_NATS, diagnosed, drop_table
+from hmepol_cli.report.diagnostics import (
+    DROP_FROM,
+    DROP_NATS,
+    diagnosed,
+    drop_table,
+    pooled_drops,
+)
 from hmepol_cli.report.figures import average_bound, finetune_curves, finetune_frame
+from hmepol_cli.report.resolution import (
+    DETECTABLE_COLUMN,
+    PLANNED_DIFFERENCE,
+    PLANNED_HALF_WIDTHS,
+    PLANNED_POWER,
+    SEEDS_COLUMN,
+    few_units_note,
+    format_seeds,
+    planning_columns,
+    resolution_line,
+)
 from hmepol_cli.report.runs import Group, Run, algo_label
-from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
+from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci, nested_mean_ci
 
 
 @dataclass(frozen=True)
@@ -28,14 +47,20 @@ class ReportCounts:
     groups: int
     skipped: int
     figures: int
+    merged: int = 0  # directories holding a run found elsewhere too, counted once
 
     @property
     def runs_used(self) -> int:
         return self.pretraining_runs + self.finetune_runs
 
     def text(self) -> str:
+        merged = (
+            f", {self.merged} identical {'copy' if self.merged == 1 else 'copies'} merged"
+            if self.merged
+            else ""
+        )
         return (
-            f"{self.runs_used} runs used ({self.groups} groups), {self.skipped} skipped, "
+            f"{self.runs_used} runs used ({self.groups} groups), {self.skipped} skipped{merged}, "
             f"{self.figures} figures"
         )
 
@@ -46,8 +71,8 @@ def _config_rows(group: Group) -> list[tuple[int | None, str]]:
 
 def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
     """One row per group and configuration: mean final entropy over seeds and its 95% t-interval,
-    then rliable's IQM and mean with stratified-bootstrap intervals (the "average" row's over every
-    seed x configuration score, the others' over that configuration's seeds)."""
+    then rliable's IQM and mean with bootstrap intervals over runs (the "average" row's over
+    every seed x configuration score, the others' over that configuration's seeds)."""
     rows = []
     for group in groups:
         run = group.first
@@ -85,8 +110,9 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
 
     Paired t-interval when both groups ran the same seeds, Welch's t-interval otherwise
     (the ``method`` column says which). ``p_improvement`` is rliable's probability that a run of
-    the later group scores higher than one of the earlier, with its stratified-bootstrap interval
-    (the "average" row's over every configuration).
+    the later group scores higher than one of the earlier, with its bootstrap interval over
+    runs (the "average" row's over every configuration). Then the seeds per arm the planned
+    precisions need and the difference these seeds find with 80% power (resolution.py).
     """
     rows = []
     by_setting: dict[tuple, list[Group]] = {}
@@ -112,43 +138,54 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
                         "p_improvement": p.estimate,
                         "p_boot95_low": p.low,
                         "p_boot95_high": p.high,
+                        **planning_columns(d),
                     }
                 )
     return pd.DataFrame(rows)
 
 
 def finetune_table(runs: list[Run]) -> pd.DataFrame:
-    """Per env, wind, configuration and initialisation: final return (mean over the last 10% of
-    epochs of each curve) with its CI over (seed, target) curves, and the first epoch at which
-    the mean curve reaches the Mepol-initialised curve's final mean."""
+    """Per env, wind, configuration and initialisation: final return (per curve the mean over
+    the last 10% of epochs) with its 95% CI over the independent units, and the first epoch at
+    which the mean curve reaches the Mepol-initialised curve's final mean.
+
+    The unit is the pre-training run (from scratch, the fine-tuning run): a unit's targets and
+    fine-tuning seeds are averaged first, and the t-interval is over the unit means
+    (:func:`nested_mean_ci`), cut to the return's bounds (a goal task's [0, 1])."""
     frame = finetune_frame(runs)
     if frame.empty:
         return pd.DataFrame()
     rows = []
-    for (env, wind), part in frame.groupby(["env", "wind"], sort=False):
+    for (env, wind), part in frame.groupby(["env", "wind"], sort=False, dropna=False):
         curves = finetune_curves(part)
-        mepol_final = {}
-        for (init, config), (_, data) in curves.items():
-            if init == "mepol":
-                mepol_final[config] = curve_ci(data)[0][-1]
-        for (init, config), (epochs, data) in sorted(
-            curves.items(), key=lambda kv: (kv[0][1], kv[0][0])
-        ):
-            ci = mean_ci([final_value(c) for c in data])
-            mean = curve_ci(data)[0]
+        mepol_final = {
+            config: curve_ci(c.unit_curves())[0][-1]
+            for (init, config), c in curves.items()
+            if init == "mepol"
+        }
+        for (init, config), c in sorted(curves.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+            ci = nested_mean_ci([final_value(x) for x in c.curves], c.units, bounds=c.bounds)
+            mean = curve_ci(c.unit_curves())[0]
             target = mepol_final.get(config, math.nan)
             reached = np.flatnonzero(mean >= target) if np.isfinite(target) else []
+            sub = part[(part["algo_init"] == init) & (part["config"] == config)]
             rows.append(
                 {
                     "env": env,
                     "wind": wind,
                     "config": config,
-                    "init": "from scratch" if init == "scratch" else algo_label(init),
-                    "n_curves": ci.n,
+                    "init": "from scratch" if init == SCRATCH.name else algo_label(init),
+                    "unit": "fine-tuning run" if init == SCRATCH.name else "pre-training run",
+                    "n_units": ci.n,
+                    "n_pretrain": sub["pretraining_run"].nunique(),
+                    "n_finetune_seeds": sub["seed"].nunique(),
+                    "n_targets": sub["target"].nunique(),
+                    "n_curves": len(c.curves),
                     "final_return": ci.mean,
                     "ci95_low": ci.low,
                     "ci95_high": ci.high,
-                    "first_epoch_reaching_mepol_final": epochs[reached[0]]
+                    "ci95_half_width": ci.half_width,  # the t half-width, before the cut
+                    "first_epoch_reaching_mepol_final": c.epochs[reached[0]]
                     if len(reached)
                     else math.nan,
                 }
@@ -160,6 +197,8 @@ def format_number(column: str, value, digits: int = 3) -> str | None:
     """A float as the tables show it ('n/a' for NaN); None for anything that is not a float."""
     if not isinstance(value, float | np.floating):
         return None
+    if column.startswith(SEEDS_COLUMN):
+        return format_seeds(float(value))
     if not np.isfinite(value):
         return "n/a"
     if column in ("wind", "first_epoch_reaching_mepol_final"):
@@ -185,53 +224,114 @@ def to_markdown(frame: pd.DataFrame, digits: int = 3) -> str:
     return "\n".join([header, rule, *body]) + "\n"
 
 
+# Each table of the report: its title, and a caption that says its unit, method and columns
+# (Markdown: `code`), written under the title in summary.md and index.html alike.
+TABLE_TITLES = {
+    "summary": "Final entropy per group and configuration (nats)",
+    "differences": "Differences between algorithms (nats; same env and wind)",
+    "finetune": "Fine-tuning returns",
+    "drops": "Drops and the KL of the updates before them (runs with diagnostics)",
+    "drops_pooled": "Drops per group, pooled over seeds",
+}
+
+
+def table_caption(name: str) -> str:
+    """What table ``name`` holds, over which unit, by which method."""
+    planned = ", ".join(f"±{h:g}" for h in PLANNED_HALF_WIDTHS)
+    captions = {
+        "summary": (
+            "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs. The "
+            "unit is the seed (one pre-training run). `mean_nats`, `ci95_*`: the mean over seeds "
+            "with its Student-t 95% interval (n/a with one seed). `iqm_nats`, `*_boot95_*`: "
+            "rliable's interquartile mean and mean (Agarwal et al., 2021) with 95% intervals by "
+            f"a {AGGREGATES_METHOD}; the average row pools every seed x configuration score."
+        ),
+        "differences": (
+            "Final entropy of the later algorithm minus the earlier one (order Mepol, α-Mepol, "
+            "HMepol); the unit is the seed. 95% CI: paired t-interval on the per-seed "
+            "differences when both groups ran the same seeds, Welch's t-interval "
+            "(Welch-Satterthwaite degrees of freedom) otherwise (column `method`). "
+            "`p_improvement`: the probability that a run of the later algorithm scores higher "
+            "than a run of the earlier (per configuration the share of seed pairs, ties one "
+            "half; the average row averages it over configurations), with its interval by the "
+            f"same bootstrap over runs. `{SEEDS_COLUMN}*`: the seeds per arm for a 95% interval "
+            f"of {planned} nats (`hw`) and for {PLANNED_POWER:.0%} power against a "
+            f"{PLANNED_DIFFERENCE:g}-nat difference (`power`), from the observed spread (the t "
+            "quantile searched on n; power from the noncentral t). "
+            f"`{DETECTABLE_COLUMN}`: the smallest true difference these seeds find with "
+            f"{PLANNED_POWER:.0%} power."
+        ),
+        "finetune": (
+            "Final return: per (fine-tuning run, seed, target) curve the mean over the last 10% "
+            "of epochs. The unit of independence is the pre-training run (`unit`; from scratch, "
+            "the fine-tuning run): the targets and fine-tuning seeds of one unit are averaged "
+            "first, and `ci95_*` is the Student-t 95% interval over the `n_units` unit means, cut "
+            "to the range of the return (a goal task's return is the share of episodes that "
+            "reached the target: [0, 1]); `ci95_half_width` is the t half-width before the cut. "
+            "`n_pretrain` pre-training runs, `n_finetune_seeds` fine-tuning seeds, `n_targets` "
+            "targets and `n_curves` curves in all. Last column: the first epoch at which the "
+            "mean curve reaches the final mean return of the Mepol-initialised runs."
+        ),
+        "drops": (
+            f"A drop: a fall of more than {DROP_NATS:g} nat in one configuration's entropy "
+            "(`entropy_c<c>`) from one epoch to the next, epoch e against epoch e - 1 in that "
+            f"configuration (none where either lacks it), from epoch {DROP_FROM} on. Per run: "
+            "`drops_c<c>` counts configuration c's drops, `drops` the epochs with a drop in any "
+            "configuration (pooled over configurations). KL ratio: the exact KL of an accepted "
+            "update over its one-step KL (median over the updates just before a drop, and over "
+            "the others)."
+        ),
+        "drops_pooled": (
+            "The drops above summed over each group's seeds (`drops`, `drops_c<c>`), their mean "
+            "per run, and the share of runs with at least one drop with Wilson's 95% interval: "
+            "the run is the unit, the epochs of one run are not independent."
+        ),
+    }
+    return captions[name]
+
+
+def table_sections(tables: dict[str, pd.DataFrame]) -> list[tuple[str, str, str, str, str]]:
+    """(name, title, caption, fewer-units notice, resolution line) of each table to show: the
+    entropy tables always, the others when they have rows."""
+    shown = [n for n in TABLE_TITLES if n in ("summary", "differences") or not tables[n].empty]
+    return [
+        (
+            name,
+            TABLE_TITLES[name],
+            table_caption(name),
+            few_units_note(name, tables[name]),
+            resolution_line(name, tables[name]),
+        )
+        for name in shown
+    ]
+
+
 def write_summary(
     groups: list[Group], finetune_runs: list[Run], out_dir: Path
 ) -> tuple[dict[str, pd.DataFrame], list[Path]]:
-    """Write summary.csv, differences.csv, finetune.csv (each when not empty) and summary.md;
-    return the tables and the files written."""
+    """Write summary.csv, differences.csv, finetune.csv, drops.csv, drops_pooled.csv (each when
+    not empty) and summary.md; return the tables and the files written."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    drops = drop_table(diagnosed(groups))
     tables = {
         "summary": final_entropy_table(groups),
         "differences": difference_table(groups),
         "finetune": finetune_table(finetune_runs),
-        "drops": drop_table(diagnosed(groups)),
+        "drops": drops,
+        "drops_pooled": pooled_drops(drops),
     }
     files = []
     for name, table in tables.items():
         if not table.empty:
             files.append(out_dir / f"{name}.csv")
             table.to_csv(files[-1], index=False)
-    text = [
-        "# hmepol report: summary\n",
-        "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs; then the "
-        "mean over seeds with a Student-t 95% confidence interval (n/a with one seed), and "
-        "rliable's aggregates (Agarwal et al., 2021): the interquartile mean (IQM) and the mean "
-        "with stratified-bootstrap 95% intervals (2,000 percentile resamples; the average row "
-        "pools every seed x configuration score, resampling each configuration's seeds on its "
-        "own).\n",
-        "## Final entropy per group and configuration\n",
-        to_markdown(tables["summary"]),
-        "## Differences between algorithms (same env and wind)\n",
-        "Later minus earlier algorithm; paired t-interval when both ran the same seeds, Welch's "
-        "t-interval otherwise (column `method`). `p_improvement`: the probability that a run of "
-        "the later algorithm scores higher than a run of the earlier (per configuration the "
-        "share of seed pairs, ties one half; the average row averages it over configurations), "
-        "with its stratified-bootstrap interval.\n",
-        to_markdown(tables["differences"]),
-    ]
-    if not tables["finetune"].empty:
-        text += ["## Fine-tuning returns\n", to_markdown(tables["finetune"])]
-    if not tables["drops"].empty:
-        text += [
-            "## Drops and the KL of the updates before them (runs with diagnostics)\n",
-            f"A drop: a fall of more than {DROP_NATS:g} nat in one configuration's entropy from "
-            f"one epoch to the next, from epoch {DROP_FROM} on. KL ratio: the exact KL of an "
-            "accepted update over its one-step KL (median over the updates just before a drop, "
-            "and over the others).\n",
-            to_markdown(tables["drops"]),
-        ]
+    text = ["# hmepol report: summary\n"]
+    for name, title, caption, notice, line in table_sections(tables):
+        text += [f"## {title}\n", caption + "\n"]
+        text += [f"**{notice}**\n"] if notice else []
+        text += [to_markdown(tables[name])]
+        text += [f"_{line}_\n"] if line else []
     files.append(out_dir / "summary.md")
     files[-1].write_text("\n".join(text))
     return tables, files
