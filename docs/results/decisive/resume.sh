@@ -3,7 +3,8 @@
 #
 #   docs/results/decisive/resume.sh start    # start, or resume, every chain of runs, in the background
 #   docs/results/decisive/resume.sh status   # epochs done per run, and which chains are running
-#   docs/results/decisive/resume.sh save     # copy the runs' small files and resume kits here
+#   docs/results/decisive/resume.sh save     # copy the runs' small files and resume kits here,
+#                                             # and rewrite RESULTS.md's interim tables
 #
 # The runs use the pre-registered commit (the one that added PREREGISTRATION.md), from a
 # worktree of it ($DECISIVE_TREE, default: ../decisive beside this checkout) with a virtual
@@ -121,6 +122,7 @@ save() {
   for arm in "$OUT"/*/; do
     "$PY" -m hmepol_cli.report.export "$arm" "$HERE/$(basename "$arm")"
   done
+  "$PY" "$HERE/analysis.py" --results "$MAIN/RESULTS.md" > /dev/null  # the interim tables
 }
 
 case "${1:-}" in
