@@ -31,7 +31,7 @@ the arena and the share within 0.05 of the start room's north wall, for ours, ou
 defect alone and ours with all three::
 
     python -m benchmarks.reference_defects              # seeds 0-2, about 2 minutes, one core
-    python -m benchmarks.reference_defects --seeds $(seq 0 19)
+    python -m benchmarks.reference_defects --seeds $(seq 0 19) --pairs   # each one's share
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ import argparse
 import math
 import time
 from collections.abc import Iterable
+from itertools import combinations
 
 import torch
 
@@ -58,6 +59,13 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "+ corner rule": ("corner",),
     "+ all three": DEFECTS,
 }
+# With --pairs: every subset of the defects, for a split of the total among them (Shapley).
+PAIRS: dict[str, tuple[str, ...]] = {
+    "+ leaves + tunnels": ("leave", "tunnel"),
+    "+ leaves + corner rule": ("leave", "corner"),
+    "+ tunnels + corner rule": ("tunnel", "corner"),
+}
+NAMES = {"leave": "leaving the arena", "tunnel": "tunnelling", "corner": "the corner rule"}
 # The reference turns a move off the edges at most five times (recursion depth 0-4); at the
 # fifth it gives up and returns the last crossing point.
 REFERENCE_ROUNDS = 5
@@ -276,14 +284,32 @@ def _mean_and_error(values: list[float]) -> tuple[float, float]:
     return m, math.sqrt(var / len(values))
 
 
-def measure(n: int, steps: int, seeds: list[int]) -> list[dict]:
+def shapley(entropy: dict[frozenset, float], defect: str) -> float:
+    """The share of the change (all defects against none) that falls to ``defect``: its mean
+    marginal change over the orders in which the defects can be added. ``entropy`` holds
+    every subset of :data:`DEFECTS`."""
+    others = [d for d in DEFECTS if d != defect]
+    share = 0.0
+    for size in range(len(DEFECTS)):
+        subsets = [frozenset(c) for c in combinations(others, size)]
+        weight = math.factorial(size) * math.factorial(len(DEFECTS) - size - 1)
+        weight /= math.factorial(len(DEFECTS))
+        share += weight * sum(entropy[c | {defect}] - entropy[c] for c in subsets)
+    return share
+
+
+def measure(
+    n: int, steps: int, seeds: list[int], pairs: bool = False
+) -> tuple[list[dict], list[dict]]:
     """One row per world and variant: each metric's mean over seeds, and the change of the
-    entropies from ours, paired seed by seed (mean and standard error)."""
-    rows = []
+    entropies from ours, paired seed by seed (mean and standard error). With ``pairs``, also
+    each defect's share of the total change (Shapley), per world. -> (rows, shares)"""
+    rows, shares = [], []
+    variants = {**VARIANTS, **PAIRS} if pairs else VARIANTS
     for name, config in CASES:
         runs = {
             label: [measure_variant(name, config, defects, n, steps, s) for s in seeds]
-            for label, defects in VARIANTS.items()
+            for label, defects in variants.items()
         }
         for label, values in runs.items():
             row = {"world": f"{name} {config}", "variant": label, "seeds": len(seeds)}
@@ -293,7 +319,21 @@ def measure(n: int, steps: int, seeds: list[int]) -> list[dict]:
                 deltas = [v[key] - o[key] for v, o in zip(values, runs["ours"], strict=True)]
                 row[f"{key}_change"], row[f"{key}_error"] = _mean_and_error(deltas)
             rows.append(row)
-    return rows
+        if not pairs:
+            continue
+        for defect in DEFECTS:
+            share = {"world": f"{name} {config}", "defect": NAMES[defect]}
+            for key in ("entropy_all", "entropy_batches"):
+                per_seed = [
+                    shapley(
+                        {frozenset(d): runs[label][i][key] for label, d in variants.items()},
+                        defect,
+                    )
+                    for i in range(len(seeds))
+                ]
+                share[key], share[f"{key}_error"] = _mean_and_error(per_seed)
+            shares.append(share)
+    return rows, shares
 
 
 def _change(row: dict, key: str) -> str:
@@ -303,17 +343,23 @@ def _change(row: dict, key: str) -> str:
     return f"{row[f'{key}_change']:+.3f}" + ("" if math.isnan(error) else f" ± {error:.3f}")
 
 
-def markdown(rows: list[dict], seeds: list[int], seconds: float) -> str:
+def markdown(
+    rows: list[dict], seeds: list[int], seconds: float, n: int = 100, steps: int = 400
+) -> str:
     several = len(seeds) > 1
     lines = [
-        f"Zero-mean start policy (std {math.exp(-1.5):.3f}), 100 trajectories x 400 steps per "
+        f"Zero-mean start policy (std {math.exp(-1.5):.3f}), {n} trajectories x {steps} steps per "
         f"world and seed; seed{'s' if several else ''} {', '.join(map(str, seeds))}, the same "
         "actions and world noise in every variant of a world and seed; kNN k = 30."
-        + (" Numbers are means over the seeds; a change is ours' subtracted seed by seed "
-           "(± its standard error)." if several else "")
+        + (
+            " Numbers are means over the seeds; a change is ours' subtracted seed by seed "
+            "(± its standard error)."
+            if several
+            else ""
+        )
         + f" Machine: {cpu_name()}, {torch.get_num_threads()} thread(s), {seconds:.0f} s.",
         "",
-        "| world, config | variant | kNN entropy, 40,000 states | change | mean over mini-batches "
+        "| world, config | variant | kNN entropy, all states | change | mean over mini-batches "
         "of 5 trajectories | change | outside the arena | within 0.05 of the north wall | "
         "in the south |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -328,17 +374,53 @@ def markdown(rows: list[dict], seeds: list[int], seconds: float) -> str:
     return "\n".join(lines)
 
 
+def shares_markdown(rows: list[dict], shares: list[dict]) -> str:
+    """Each defect's share of the change with all three (Shapley: its marginal change averaged
+    over the orders in which the defects can be added; the shares sum to the total)."""
+    total = {r["world"]: r for r in rows if r["variant"] == "+ all three"}
+    lines = [
+        "Each defect's share of the change with all three: its change averaged over the six "
+        "orders in which the three can be added (Shapley; the shares add up to the total).",
+        "",
+        "| world, config | defect | share, all states | share, mini-batches | of the total |",
+        "|---|---|---|---|---|",
+    ]
+
+    def pm(value: float, error: float) -> str:
+        return f"{value:+.3f}" + ("" if math.isnan(error) else f" ± {error:.3f}")
+
+    for s in shares:
+        t = total[s["world"]]
+        lines.append(
+            f"| {s['world']} | {s['defect']} | {pm(s['entropy_all'], s['entropy_all_error'])} | "
+            f"{pm(s['entropy_batches'], s['entropy_batches_error'])} | "
+            f"{100 * s['entropy_all'] / t['entropy_all_change']:.0f}% |"
+        )
+    for world, t in total.items():
+        lines.append(
+            f"| {world} | all three | {_change(t, 'entropy_all')} | "
+            f"{_change(t, 'entropy_batches')} | 100% |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trajectories", type=int, default=100)
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--pairs", action="store_true", help="also the pairs of defects, and each one's share"
+    )
     ns = parser.parse_args(argv)
     torch.set_num_threads(ns.threads)
     start = time.perf_counter()
-    rows = measure(ns.trajectories, ns.steps, ns.seeds)
-    print(markdown(rows, ns.seeds, time.perf_counter() - start))
+    rows, shares = measure(ns.trajectories, ns.steps, ns.seeds, ns.pairs)
+    print(markdown(rows, ns.seeds, time.perf_counter() - start, ns.trajectories, ns.steps))
+    if shares:
+        print()
+        print(shares_markdown(rows, shares))
 
 
 if __name__ == "__main__":
