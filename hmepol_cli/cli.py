@@ -45,7 +45,7 @@ from hmepol_cli.errors import (
     StorageError,
     UserError,
 )
-from hmepol_cli.rundir import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
+from hmepol_cli.run import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
 from hmepol_cli.signals import preemptible
 from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
 

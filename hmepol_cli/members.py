@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from omegaconf import DictConfig
 
 from hmepol_cli.errors import ConfigError
-from hmepol_cli.rundir import RESUMABLE_KEYS, flat_config
+from hmepol_cli.run import RESUMABLE_KEYS, flat_config
 
 MEMBER_KEYS = (
     "seed",

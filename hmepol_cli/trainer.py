@@ -33,7 +33,7 @@ from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 from hmepol_cli.precision import precision_of
 from hmepol_cli.records import epoch_rows, precision_drift
-from hmepol_cli.rundir import (
+from hmepol_cli.run import (
     CHECKPOINT,
     EVAL_DIR,
     FINAL_EVAL,
