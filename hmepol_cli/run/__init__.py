@@ -5,7 +5,7 @@
 - :mod:`~hmepol_cli.run.checkpoint`: checkpoints (``weights_only=True``), a trained policy
 - :mod:`~hmepol_cli.run.provenance`: a run's identity and hash, provenance, git state
 - :mod:`~hmepol_cli.run.lock`: one writer a directory
-- :mod:`~hmepol_cli.run.tables`: the CSV tables and their per-epoch digests
+- :mod:`~hmepol_cli.run.tables`: the CSV tables, their per-epoch digests, ``read_table``
 - :mod:`~hmepol_cli.run.lifecycle`: ``RunDirectory`` and ``writing`` (open, fail, close)
 """
 
@@ -53,7 +53,14 @@ from hmepol_cli.run.provenance import (
     identity_of,
     provenance,
 )
-from hmepol_cli.run.tables import LINE, RunTables, row_digest, training_tables
+from hmepol_cli.run.tables import (
+    LINE,
+    MISSING_FIELDS,
+    RunTables,
+    read_table,
+    row_digest,
+    training_tables,
+)
 
 __all__ = [
     "BATCHES_CSV",
@@ -66,6 +73,7 @@ __all__ = [
     "FINETUNE_CSV",
     "LINE",
     "LOCK",
+    "MISSING_FIELDS",
     "RESUMABLE_KEYS",
     "RUN_INFO",
     "STEPS_CSV",
@@ -87,6 +95,7 @@ __all__ = [
     "load_trained_policy",
     "provenance",
     "read_json",
+    "read_table",
     "remove_temporaries",
     "resolve_checkpoint",
     "row_digest",

@@ -1,11 +1,19 @@
 """The CSV tables of a run directory: written atomically a whole epoch at a time, each epoch's
-rows digested so that a resume keeps exactly the rows its checkpoint covers."""
+rows digested so that a resume keeps exactly the rows its checkpoint covers (:class:`RunTables`),
+and read back by whoever uses a finished run (:func:`read_table`).
+
+The two reads differ on purpose: the writer's keeps every row it can and locates the damaged
+ones (a resume refuses them only where the checkpoint covers them, and drops the rest), while a
+reader's refuses the whole table at its first damaged line, which it names.
+"""
 
 from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -13,7 +21,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from hmepol_cli.errors import RunDirError
+from hmepol_cli.errors import RunDirError, TableError
 from hmepol_cli.run.io import write_csv
 from hmepol_cli.run.layout import BATCHES_CSV, EPOCHS_CSV, STEPS_CSV
 
@@ -172,3 +180,81 @@ class RunTables:
 
 def training_tables(run_dir: Path) -> RunTables:
     return RunTables(run_dir, (EPOCHS_CSV, BATCHES_CSV), optional=(STEPS_CSV,))
+
+
+MISSING_FIELDS = ("", "nan", "-nan", "+nan")  # what a CSV writer puts for NaN, any case
+
+
+def read_table(
+    path: Path, required: Sequence[str] = (), numeric: re.Pattern | str | None = None
+) -> pd.DataFrame:
+    """A table a run wrote (epochs.csv, batches.csv, steps.csv, finetune.csv), indexed by the
+    line of the file each row is on (``line``; 1 is the header), for messages.
+
+    Raises :class:`~hmepol_cli.errors.TableError` when the file is missing, empty or cut short,
+    its header lacks a ``required`` column or names one twice, a row does not parse, or a column
+    whose whole name ``numeric`` matches holds something that is not a number (an empty field
+    and ``nan`` are NaN). Other columns become numbers where every field is one, and stay text
+    otherwise. Runs rewrite their tables whole and end every row with a line end, so a file
+    that stops mid-line was cut (a copy, a full disk), and its last row may hold half a number.
+    """
+    path = Path(path)
+    numeric = re.compile(numeric) if isinstance(numeric, str) else numeric
+    if not path.is_file():
+        raise TableError(f"{path.name} is missing")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise TableError(f"{path.name} is not UTF-8 text") from None
+    except OSError as err:
+        raise TableError(f"{path.name} is unreadable ({type(err).__name__})") from None
+    if not text.strip():
+        raise TableError(f"{path.name} is empty")
+    if not text.endswith("\n"):
+        last = text.count("\n") + 1
+        raise TableError(f"{path.name} is cut short: its last line ({last}) stops mid-line")
+    reader = csv.reader(io.StringIO(text))
+    try:
+        header = next(reader)
+    except csv.Error as err:
+        raise TableError(f"{path.name} line 1 does not parse ({err})") from None
+    if len(set(header)) != len(header):
+        raise TableError(f"{path.name} is corrupt (its header names a column twice)")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise TableError(f"{path.name} is corrupt (missing columns: {', '.join(missing)})")
+    rows, lines = [], []
+    while True:
+        line = reader.line_num + 1
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as err:
+            raise TableError(f"{path.name} line {line} does not parse ({err})") from None
+        if not row:  # a blank line
+            continue
+        if len(row) != len(header):
+            raise TableError(
+                f"{path.name} line {line} does not parse: {len(row)} fields, "
+                f"the header has {len(header)}"
+            )
+        rows.append(row)
+        lines.append(line)
+    if not rows:
+        raise TableError(f"{path.name} has no rows")
+    frame = pd.DataFrame(rows, columns=header, index=pd.Index(lines, name="line"))
+    for column in frame.columns:
+        fields = frame[column].str.strip()
+        blank = fields.str.lower().isin(MISSING_FIELDS)
+        numbers = pd.to_numeric(fields.mask(blank), errors="coerce")
+        unparsed = numbers.isna() & ~blank
+        if not unparsed.any():
+            frame[column] = numbers
+        elif numeric is not None and numeric.fullmatch(column):
+            line = unparsed.idxmax()
+            raise TableError(
+                f"{path.name} line {line} does not parse: "
+                f"{column}={fields[line][:40]!r} is not a number"
+            )
+    return frame
