@@ -45,6 +45,7 @@ from hmepol_cli.errors import (
     StorageError,
     UserError,
 )
+from hmepol_cli.members import population_members
 from hmepol_cli.run import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
 from hmepol_cli.signals import preemptible
 from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
@@ -376,7 +377,7 @@ def _train(cfg: DictConfig) -> list[str]:
     if cfg.seeds or cfg.members:
         if cfg.resume is not None:
             raise ConfigError("resume= continues one run; give it a member's run directory")
-        members = _population_members(cfg)
+        members = population_members(cfg)
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             _remove_if_empty(Path(HydraConfig.get().runtime.output_dir))  # the job's own folder
     elif cfg.resume is not None:
@@ -387,64 +388,12 @@ def _train(cfg: DictConfig) -> list[str]:
     return train_runs(members, resume=cfg.resume is not None)
 
 
-def _population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
-    """Each member's config, and the run directory the same job with the member's own
-    overrides instead of ``seeds=[...]`` / ``members=[...]`` would have had: a population
-    leaves ordinary runs where the ungrouped sweep would. (A single ``hmepol train
-    seeds=[...]`` puts them in ``<run dir>/seed<s>``.)
-
-    ``members``: one string per member, its own overrides separated by spaces
-    (``"seed=0 wind=0.05"``), composed with the job's others."""
-    from hydra import compose as hydra_compose
-
-    hc = HydraConfig.get()
-    common = [o for o in hc.overrides.task if _key(o) not in ("seeds", "members")]
-    if cfg.seeds:
-        seeds = [int(s) for s in cfg.seeds]
-        if len(set(seeds)) != len(seeds):
-            raise ConfigError(f"seeds={seeds} holds a seed twice")
-        own = [[f"seed={s}"] for s in seeds]
-    else:
-        own = [str(m).split() for m in cfg.members]
-    members = []
-    for i, overrides in enumerate(own):
-        if cfg.seeds:
-            member = cfg.copy()
-            with open_dict(member):
-                member.seed, member.seeds = int(overrides[0].partition("=")[2]), None
-        else:
-            member = hydra_compose(config_name="config", overrides=[*common, *overrides])
-        if hc.mode == RunMode.MULTIRUN:
-            run_dir = Path(str(hc.sweep.dir)) / _member_subdir(hc, [*common, *overrides])
-        elif cfg.seeds:
-            run_dir = Path(hc.runtime.output_dir) / f"seed{member.seed}"
-        else:
-            run_dir = Path(hc.runtime.output_dir) / f"member{i}"
-        members.append((member, run_dir))
-    return members
-
-
 def _remove_if_empty(folder: Path) -> None:
     """Hydra makes a folder for every job; a population's job writes into its members'."""
     try:
         folder.rmdir()
     except OSError:  # not empty, or not there
         pass
-
-
-def _key(override: str) -> str:
-    return override.lstrip("+~").partition("=")[0]
-
-
-def _member_subdir(hc: DictConfig, overrides: list[str]) -> str:
-    """hydra.sweep.subdir of the job with these overrides (a population member's own job)."""
-    naming = hc.job.config.override_dirname
-    dirname = sweeps.override_dirname(
-        overrides, list(naming.exclude_keys), naming.item_sep, naming.kv_sep
-    )
-    job = OmegaConf.create({"hydra": OmegaConf.to_container(hc, resolve=False)})
-    job.hydra.job.override_dirname = dirname
-    return str(job.hydra.sweep.subdir)
 
 
 def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> list[str]:
