@@ -32,7 +32,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.core.plugins import Plugins
 from hydra.errors import HydraException
 from hydra.types import RunMode
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from hmepol_cli import sweeps
@@ -46,7 +46,8 @@ from hmepol_cli.errors import (
     UserError,
 )
 from hmepol_cli.members import population_members
-from hmepol_cli.run import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
+from hmepol_cli.resume import resumed_config
+from hmepol_cli.run import RUN_INFO, read_json, run_config
 from hmepol_cli.signals import preemptible
 from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
 
@@ -293,29 +294,6 @@ def check_sweep(overrides: list[str]) -> int:
             seen.add(key)
             check_train(list(job))
     return len(jobs)
-
-
-def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> DictConfig:
-    """The config a run started with, with the keys a continuation may change taken from the
-    command line; any other override is refused (the run keeps what it is)."""
-    saved = run_config(run_dir)
-    changed = []
-    with open_dict(saved):
-        for item in overrides:
-            key = item.lstrip("+~").partition("=")[0]
-            if key.startswith("hydra") or key == "resume":
-                continue
-            if key in RESUMABLE_KEYS or key.split(".")[0] in RESUMABLE_KEYS:
-                OmegaConf.update(saved, key, OmegaConf.select(cfg, key), force_add=True)
-            elif OmegaConf.select(cfg, key) != OmegaConf.select(saved, key):
-                changed.append(item)  # giving a run the value it already has is no change
-        saved.resume = str(run_dir)
-    if changed:
-        raise ConfigError(
-            f"{run_dir} keeps the config it started with; {', '.join(changed)} cannot change on "
-            f"resume (only {', '.join(RESUMABLE_KEYS[:5])}, ... can)"
-        )
-    return saved
 
 
 # --------------------------------------------------------------------------- train / sweep
