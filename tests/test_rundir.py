@@ -178,7 +178,7 @@ def test_a_member_whose_numbers_stop_being_finite_fails_alone_and_says_what(tmp_
 def test_train_runs_reports_a_failed_member_as_a_failure(tmp_path, monkeypatch):
     cfg = compose_cfg("epochs=2", "progress=false", "algo.lr=1e-3")
     monkeypatch.setattr(
-        "hmepol_cli.trainer.Trainer._non_finite", lambda self, s, stats: ["log-std"]
+        "hmepol_cli.alarms.MemberAlarms.non_finite", lambda self, stats, params: ["log-std"]
     )
     with pytest.raises(RunFailure, match="non-finite log-std at epoch 0"):
         train_runs([(cfg, tmp_path / "run")])
