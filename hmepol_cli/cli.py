@@ -569,35 +569,46 @@ def _report(args: list[str]) -> None:
 def _show(args: list[str]) -> None:
     import argparse
 
-    from hmepol_cli.envs import ENVIRONMENTS, make_world
+    from hmepol_cli.envs import make_world
     from hmepol_cli.envs.render import show_world
 
     parser = argparse.ArgumentParser(
         prog="hmepol show",
-        description="Draw every configuration of a world (north up): walls, start area, the "
-        "slope or wind, and each configuration's probability.",
+        description="Draw every configuration of a world with its probability: a 2-D world's "
+        "map (north up: walls, start area, the slope or wind), or, for a Gymnasium world, where "
+        "episodes of uniformly random actions take its state (the two env.projection indices).",
     )
-    parser.add_argument("overrides", nargs="*", help="env=NAME [wind=FORCE]")
+    parser.add_argument(
+        "overrides", nargs="*", help="env=NAME [env.KEY=VALUE ...] [wind=FORCE], as for train"
+    )
     parser.add_argument("--out", default=None, help="PNG file (default: outputs/show/<env>.png)")
     ns = parser.parse_args(args)
-    values = dict(item.partition("=")[::2] for item in ns.overrides)
-    unknown = set(values) - {"env", "wind"}
+    keys = [item.lstrip("+~").partition("=")[0] for item in ns.overrides]
+    unknown = {k for k in keys if k not in ("env", "wind") and not k.startswith("env.")}
     if unknown:
-        fail(f"unknown option(s) {', '.join(sorted(unknown))}; use env=NAME and wind=FORCE")
-    name = values.get("env", "slope")
-    # Only the 2-D worlds are maps; a Gymnasium world has no walls to draw.
-    maps = [n for n, world in ENVIRONMENTS.items() if world.maps]
-    if name not in maps:
-        fail(f"env={name!r} cannot be drawn; choose one of: {', '.join(maps)}")
-    try:
-        wind = float(values.get("wind", 0.4))
-    except ValueError:
-        fail(f"wind={values['wind']!r} is not a number")
-    if not 0 <= wind < float("inf"):
-        fail(f"wind={wind!r} must be a finite number >= 0")
-    world = make_world(OmegaConf.create({"name": name, "wind": wind, "edge": "slide"}))
+        fail(
+            f"unknown option(s) {', '.join(sorted(unknown))}; use env=NAME, env.KEY=VALUE and "
+            "wind=FORCE"
+        )
+    values = dict(item.partition("=")[::2] for item in ns.overrides)
+    if "wind" in values:
+        try:
+            wind = float(values["wind"])
+        except ValueError:
+            fail(f"wind={values['wind']!r} is not a number")
+        if not 0 <= wind < float("inf"):
+            fail(f"wind={wind!r} must be a finite number >= 0")
+    cfg = compose("config", ns.overrides)  # the world a run with these overrides would have
+    validate(cfg)
+    world = make_world(cfg.env)
+    name = values.get("env", cfg.env.name)
+    if cfg.env.get("id"):
+        name += "-" + re.sub(r"[^A-Za-z0-9._-]", "_", str(cfg.env.id))
     out = Path(ns.out or f"outputs/show/{name}.png")
-    show_world(world, out)
+    try:
+        show_world(world, out)
+    finally:
+        world.close()
     print(f"hmepol: {name} drawn to {out}")
 
 
