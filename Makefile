@@ -35,7 +35,7 @@ bench:
 	$(PYTHON) -m benchmarks.precision
 
 lint:
-	$(PYTHON) -m ruff check hmepol_cli tests benchmarks
+	$(PYTHON) -m ruff check .
 
 clean:
 	rm -rf outputs/demo .pytest_cache .hypothesis

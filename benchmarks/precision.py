@@ -33,7 +33,7 @@ from benchmarks.measure import cpu_name  # noqa: E402
 from benchmarks.run import thesis_config  # noqa: E402
 from hmepol_cli import estimators, mepol  # noqa: E402
 from hmepol_cli.rollout import Rollout, collect, draw_configurations  # noqa: E402
-from hmepol_cli.rundir import load_checkpoint, resolve_checkpoint  # noqa: E402
+from hmepol_cli.run import load_checkpoint, resolve_checkpoint  # noqa: E402
 from hmepol_cli.trainer import Trainer  # noqa: E402
 
 PRESETS = ("slope_mepol", "slope_hmepol", "corridor_mepol", "corridor_hmepol")

@@ -1,11 +1,11 @@
 """The ``hmepol`` command: train, sweep, report, finetune, show.
 
 ``main`` takes the subcommand from argv, checks every config the command would run before
-anything is written (composing it with Hydra's compose API), then hands the arguments to a
-``@hydra.main`` app, so single runs, ``--cfg job``, ``-m`` and launchers all keep working
-(STYLE.md, Hydra facts). Mistakes of input are one line (exit 2); a run whose numbers stop
-making sense is recorded as failed and the command exits 1; anything else is a bug and keeps
-its traceback.
+anything is written (:mod:`hmepol_cli.checks`, with Hydra's compose API), then hands the
+arguments to a ``@hydra.main`` app, so single runs, ``--cfg job``, ``-m`` and launchers all
+keep working (STYLE.md, Hydra facts). Mistakes of input are one line (exit 2); a run whose
+numbers stop making sense is recorded as failed and the command exits 1; anything else is a bug
+and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import re
 import secrets
 import sys
 import time
-import types
 import warnings
 from pathlib import Path
 
@@ -30,12 +29,16 @@ import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.plugins import Plugins
-from hydra.errors import HydraException
 from hydra.types import RunMode
-from omegaconf import DictConfig, OmegaConf, open_dict
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf import DictConfig, OmegaConf
 
-from hmepol_cli import sweeps
+from hmepol_cli.checks import (
+    CONFIG_MODULE,
+    check_finetune_overrides,
+    check_sweep,
+    check_train,
+    compose,
+)
 from hmepol_cli.config import register_configs, validate
 from hmepol_cli.errors import (
     ConfigError,
@@ -45,13 +48,14 @@ from hmepol_cli.errors import (
     StorageError,
     UserError,
 )
-from hmepol_cli.rundir import RESUMABLE_KEYS, RUN_INFO, read_json, run_config
+from hmepol_cli.members import population_members
+from hmepol_cli.resume import resumed_config
+from hmepol_cli.run import RUN_INFO, read_json
 from hmepol_cli.signals import preemptible
 from hydra_plugins.hmepol_population_launcher.population_launcher import PopulationLauncher
 
 log = logging.getLogger("hmepol")
 
-CONFIG_MODULE = "hmepol_cli.conf"
 CONFIG_PATH = f"pkg://{CONFIG_MODULE}"
 SWEEP_STATUS = "HMEPOL_SWEEP_STATUS"  # a file the jobs of a sweep report their outcome to
 
@@ -115,208 +119,6 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:  #
     return _python_warning_format(message, category, filename, lineno, line)
 
 
-# --------------------------------------------------------------------------- checking first
-def compose(config_name: str, overrides: list[str]) -> DictConfig:
-    """The config ``overrides`` compose to (Hydra's own keys left out), or one clear line."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
-            return hydra_compose(config_name=config_name, overrides=task)
-    except (HydraException, OmegaConfBaseException) as error:
-        raise ConfigError(_hydra_message(error, config_name)) from None
-    except AssertionError:  # OmegaConf, setting a key below a group left at null
-        nested = [o for o in task if "." in o.partition("=")[0]]
-        raise ConfigError(
-            f"cannot apply {' '.join(nested) or ' '.join(task)}: choose its group first "
-            "(e.g. env=corridor, not env.name=corridor)"
-        ) from None
-    finally:
-        GlobalHydra.instance().clear()
-
-
-def _hydra_message(error: Exception, config_name: str = "config") -> str:
-    """Hydra's and OmegaConf's errors, as one line that says what is allowed."""
-    text = str(error)
-    key = re.search(r"Key '([^']+)' (?:is )?not in", text) or re.search(
-        r"Could not override '([^']+)'", text
-    )
-    if key:
-        return _unknown_key(key.group(1), config_name)
-    choice = re.search(r"Could not find '([^']+)/([^'/]+)'", text)
-    if choice:
-        group, name = choice.groups()
-        options = _group_options(group)
-        listed = f"; choose one of: {', '.join(options)}" if options else ""
-        return f"{group}={name!r} is not an option of {group}{listed}"
-    merging = re.search(r"Error merging override (\S+?)=(.*)", text)
-    if merging:
-        name, value = merging.groups()
-        kind = _schema_kind(name.lstrip("+~"), config_name)
-        return f"{name}={value!r} is not allowed: {name} takes {kind}"
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[0] if lines else type(error).__name__
-
-
-def _schema(config_name: str):
-    from hmepol_cli.config import Config, FinetuneConfig
-
-    return FinetuneConfig if config_name == "finetune" else Config
-
-
-def _schema_keys(cls, prefix: str = "") -> list[str]:
-    """Every dotted key of a schema dataclass."""
-    import dataclasses
-    import typing
-
-    keys = []
-    hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
-        inner = [t for t in typing.get_args(hints[f.name]) or [hints[f.name]]
-                 if dataclasses.is_dataclass(t)]  # fmt: skip
-        keys.append(f"{prefix}{f.name}")
-        if inner:
-            keys += _schema_keys(inner[0], f"{prefix}{f.name}.")
-    return keys
-
-
-def _unknown_key(key: str, config_name: str) -> str:
-    import difflib
-
-    keys = _schema_keys(_schema(config_name))
-    near = difflib.get_close_matches(key, keys, n=3, cutoff=0.6)
-    if not near:  # the right name in the wrong place (lr for algo.lr)
-        leaves = {k.rpartition(".")[2]: k for k in keys}
-        near = [leaves[m] for m in difflib.get_close_matches(key, list(leaves), n=2, cutoff=0.6)]
-    hint = f"; did you mean {' or '.join(near)}?" if near else " (--help lists the settings)"
-    return f"unknown key {key!r}: not a hmepol setting{hint}"
-
-
-def _group_options(group: str) -> list[str]:
-    """The options of a config group: its YAML files (hydra/launcher: ours and Hydra's)."""
-    from importlib.resources import files
-
-    folder = files(CONFIG_MODULE).joinpath(*group.split("/"))
-    options = sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
-    if group == "hydra/launcher":
-        options = sorted({*options, "basic", "joblib", "submitit_local", "submitit_slurm"})
-    return options
-
-
-def _schema_kind(key: str, config_name: str) -> str:
-    """What a key of the schema takes, in words."""
-    import dataclasses
-    import typing
-
-    cls = _schema(config_name)
-    *parents, last = key.split(".")
-    try:
-        for part in parents:
-            hint = typing.get_type_hints(cls)[part]
-            cls = next(t for t in typing.get_args(hint) or [hint] if dataclasses.is_dataclass(t))
-        hint = typing.get_type_hints(cls)[last]
-    except (KeyError, StopIteration, TypeError):
-        return "another kind of value"
-    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
-    args = [a for a in typing.get_args(hint) if a is not type(None)] if union else [hint]
-    optional = " (or null)" if union and type(None) in typing.get_args(hint) else ""
-    base = args[0]
-    words = {int: "a whole number", float: "a number", bool: "true or false", str: "text"}
-    if typing.get_origin(base) is list:
-        (item,) = typing.get_args(base) or (typing.Any,)
-        kind = {int: "whole numbers", float: "numbers"}.get(item, "values")
-        return f"a list of {kind}, e.g. [300,300]{optional}"
-    return words.get(base, "another kind of value") + optional
-
-
-def _check_known_keys(cfg: DictConfig, schema: DictConfig, prefix: str = "") -> None:
-    """Refuse keys the schema does not have (Hydra lets ``+key=value`` add any)."""
-    for key in cfg:
-        path = f"{prefix}{key}"
-        if key not in schema:
-            raise ConfigError(_unknown_key(path, "config"))
-        node, spec = cfg[key], schema[key]
-        if OmegaConf.is_dict(node) and OmegaConf.is_dict(spec):
-            _check_known_keys(node, spec, f"{path}.")
-
-
-def _check_output_dirs(overrides: list[str]) -> None:
-    """An output folder given on the command line must be a folder, if it exists; a launcher
-    must be one there is."""
-    for item in overrides:
-        key, _, value = item.partition("=")
-        if key == "hydra/launcher" and value not in _group_options("hydra/launcher"):
-            options = ", ".join(_group_options("hydra/launcher"))
-            raise ConfigError(
-                f"hydra/launcher={value!r} is not a launcher; choose one of: {options}"
-            )
-    for item in overrides:
-        key, _, value = item.partition("=")
-        if key in ("hydra.run.dir", "hydra.sweep.dir", "output_dir") and value:
-            if Path(value).exists() and not Path(value).is_dir():
-                raise ConfigError(f"{key}={value!r} is a file, not a folder")
-
-
-def check_train(overrides: list[str]) -> DictConfig:
-    """The config of ``hmepol train overrides``, checked, before Hydra writes anything."""
-    from hmepol_cli.config import Config
-
-    _check_output_dirs(overrides)
-    resume = next((o.partition("=")[2] for o in overrides if o.startswith("resume=")), None)
-    if resume not in (None, "", "null"):
-        run_config(Path(resume))  # a clear error for a folder that is not a run
-    cfg = compose("config", overrides)
-    _check_known_keys(cfg, OmegaConf.structured(Config))
-    if cfg.resume is not None:
-        cfg = resumed_config(cfg, Path(cfg.resume), overrides)
-    validate(cfg)
-    return cfg
-
-
-def check_sweep(overrides: list[str]) -> int:
-    """Check the config of every job a sweep would run, before anything is written. -> jobs"""
-    _check_output_dirs(overrides)
-    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
-    try:
-        jobs = sweeps.jobs(task)
-    except HydraException as error:
-        raise ConfigError(_hydra_message(error, "config")) from None
-    seen = set()
-    for job in jobs:
-        key = tuple(job)
-        if key not in seen:
-            seen.add(key)
-            check_train(list(job))
-    return len(jobs)
-
-
-def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> DictConfig:
-    """The config a run started with, with the keys a continuation may change taken from the
-    command line; any other override is refused (the run keeps what it is)."""
-    saved = run_config(run_dir)
-    changed = []
-    with open_dict(saved):
-        for item in overrides:
-            key = item.lstrip("+~").partition("=")[0]
-            if key.startswith("hydra") or key == "resume":
-                continue
-            if key in RESUMABLE_KEYS or key.split(".")[0] in RESUMABLE_KEYS:
-                OmegaConf.update(saved, key, OmegaConf.select(cfg, key), force_add=True)
-            elif OmegaConf.select(cfg, key) != OmegaConf.select(saved, key):
-                changed.append(item)  # giving a run the value it already has is no change
-        saved.resume = str(run_dir)
-    if changed:
-        raise ConfigError(
-            f"{run_dir} keeps the config it started with; {', '.join(changed)} cannot change on "
-            f"resume (only {', '.join(RESUMABLE_KEYS[:5])}, ... can)"
-        )
-    return saved
-
-
 # --------------------------------------------------------------------------- train / sweep
 def _parallel_jobs() -> int:
     """How many jobs of this sweep run at once (joblib's n_jobs; 1 outside a parallel sweep)."""
@@ -376,7 +178,7 @@ def _train(cfg: DictConfig) -> list[str]:
     if cfg.seeds or cfg.members:
         if cfg.resume is not None:
             raise ConfigError("resume= continues one run; give it a member's run directory")
-        members = _population_members(cfg)
+        members = population_members(cfg)
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             _remove_if_empty(Path(HydraConfig.get().runtime.output_dir))  # the job's own folder
     elif cfg.resume is not None:
@@ -387,64 +189,12 @@ def _train(cfg: DictConfig) -> list[str]:
     return train_runs(members, resume=cfg.resume is not None)
 
 
-def _population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
-    """Each member's config, and the run directory the same job with the member's own
-    overrides instead of ``seeds=[...]`` / ``members=[...]`` would have had: a population
-    leaves ordinary runs where the ungrouped sweep would. (A single ``hmepol train
-    seeds=[...]`` puts them in ``<run dir>/seed<s>``.)
-
-    ``members``: one string per member, its own overrides separated by spaces
-    (``"seed=0 wind=0.05"``), composed with the job's others."""
-    from hydra import compose as hydra_compose
-
-    hc = HydraConfig.get()
-    common = [o for o in hc.overrides.task if _key(o) not in ("seeds", "members")]
-    if cfg.seeds:
-        seeds = [int(s) for s in cfg.seeds]
-        if len(set(seeds)) != len(seeds):
-            raise ConfigError(f"seeds={seeds} holds a seed twice")
-        own = [[f"seed={s}"] for s in seeds]
-    else:
-        own = [str(m).split() for m in cfg.members]
-    members = []
-    for i, overrides in enumerate(own):
-        if cfg.seeds:
-            member = cfg.copy()
-            with open_dict(member):
-                member.seed, member.seeds = int(overrides[0].partition("=")[2]), None
-        else:
-            member = hydra_compose(config_name="config", overrides=[*common, *overrides])
-        if hc.mode == RunMode.MULTIRUN:
-            run_dir = Path(str(hc.sweep.dir)) / _member_subdir(hc, [*common, *overrides])
-        elif cfg.seeds:
-            run_dir = Path(hc.runtime.output_dir) / f"seed{member.seed}"
-        else:
-            run_dir = Path(hc.runtime.output_dir) / f"member{i}"
-        members.append((member, run_dir))
-    return members
-
-
 def _remove_if_empty(folder: Path) -> None:
     """Hydra makes a folder for every job; a population's job writes into its members'."""
     try:
         folder.rmdir()
     except OSError:  # not empty, or not there
         pass
-
-
-def _key(override: str) -> str:
-    return override.lstrip("+~").partition("=")[0]
-
-
-def _member_subdir(hc: DictConfig, overrides: list[str]) -> str:
-    """hydra.sweep.subdir of the job with these overrides (a population member's own job)."""
-    naming = hc.job.config.override_dirname
-    dirname = sweeps.override_dirname(
-        overrides, list(naming.exclude_keys), naming.item_sep, naming.kv_sep
-    )
-    job = OmegaConf.create({"hydra": OmegaConf.to_container(hc, resolve=False)})
-    job.hydra.job.override_dirname = dirname
-    return str(job.hydra.sweep.subdir)
 
 
 def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> list[str]:
@@ -642,35 +392,46 @@ def _report(args: list[str]) -> None:
 def _show(args: list[str]) -> None:
     import argparse
 
-    from hmepol_cli.envs import ENVIRONMENTS, make_world
+    from hmepol_cli.envs import make_world
     from hmepol_cli.envs.render import show_world
 
     parser = argparse.ArgumentParser(
         prog="hmepol show",
-        description="Draw every configuration of a world (north up): walls, start area, the "
-        "slope or wind, and each configuration's probability.",
+        description="Draw every configuration of a world with its probability: a 2-D world's "
+        "map (north up: walls, start area, the slope or wind), or, for a Gymnasium world, where "
+        "episodes of uniformly random actions take its state (the two env.projection indices).",
     )
-    parser.add_argument("overrides", nargs="*", help="env=NAME [wind=FORCE]")
+    parser.add_argument(
+        "overrides", nargs="*", help="env=NAME [env.KEY=VALUE ...] [wind=FORCE], as for train"
+    )
     parser.add_argument("--out", default=None, help="PNG file (default: outputs/show/<env>.png)")
     ns = parser.parse_args(args)
-    values = dict(item.partition("=")[::2] for item in ns.overrides)
-    unknown = set(values) - {"env", "wind"}
+    keys = [item.lstrip("+~").partition("=")[0] for item in ns.overrides]
+    unknown = {k for k in keys if k not in ("env", "wind") and not k.startswith("env.")}
     if unknown:
-        fail(f"unknown option(s) {', '.join(sorted(unknown))}; use env=NAME and wind=FORCE")
-    name = values.get("env", "slope")
-    # Only the 2-D worlds are maps; a Gymnasium world has no walls to draw.
-    maps = [n for n, world in ENVIRONMENTS.items() if world.maps]
-    if name not in maps:
-        fail(f"env={name!r} cannot be drawn; choose one of: {', '.join(maps)}")
-    try:
-        wind = float(values.get("wind", 0.4))
-    except ValueError:
-        fail(f"wind={values['wind']!r} is not a number")
-    if not 0 <= wind < float("inf"):
-        fail(f"wind={wind!r} must be a finite number >= 0")
-    world = make_world(OmegaConf.create({"name": name, "wind": wind, "edge": "slide"}))
+        fail(
+            f"unknown option(s) {', '.join(sorted(unknown))}; use env=NAME, env.KEY=VALUE and "
+            "wind=FORCE"
+        )
+    values = dict(item.partition("=")[::2] for item in ns.overrides)
+    if "wind" in values:
+        try:
+            wind = float(values["wind"])
+        except ValueError:
+            fail(f"wind={values['wind']!r} is not a number")
+        if not 0 <= wind < float("inf"):
+            fail(f"wind={wind!r} must be a finite number >= 0")
+    cfg = compose("config", ns.overrides)  # the world a run with these overrides would have
+    validate(cfg)
+    world = make_world(cfg.env)
+    name = values.get("env", cfg.env.name)
+    if cfg.env.get("id"):
+        name += "-" + re.sub(r"[^A-Za-z0-9._-]", "_", str(cfg.env.id))
     out = Path(ns.out or f"outputs/show/{name}.png")
-    show_world(world, out)
+    try:
+        show_world(world, out)
+    finally:
+        world.close()
     print(f"hmepol: {name} drawn to {out}")
 
 
@@ -700,14 +461,7 @@ def main(argv: list[str] | None = None) -> None:
             _sweep(rest, n_jobs)
         elif command == "finetune":
             if not _asks_for_help(rest):
-                from hmepol_cli.config import FinetuneConfig
-                from hmepol_cli.finetune import check_finetune
-
-                overrides = [a for a in rest if not a.startswith("-")]
-                _check_output_dirs(overrides)
-                cfg = compose("finetune", overrides)
-                _check_known_keys(cfg, OmegaConf.structured(FinetuneConfig))
-                check_finetune(cfg)
+                check_finetune_overrides([a for a in rest if not a.startswith("-")])
             sys.argv = ["hmepol", *rest]
             finetune_app()
         elif command == "report":

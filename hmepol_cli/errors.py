@@ -18,6 +18,11 @@ class RunDirError(UserError):
     """A run directory that is not one, is locked by another process, or does not match."""
 
 
+class TableError(RunDirError):
+    """A run's CSV table that a reader cannot use: missing, not text, cut short, a row that does
+    not parse; the message names the file (and the line)."""
+
+
 class RunFailure(UserError):
     """A run stopped because its numbers stopped making sense (non-finite values)."""
 

@@ -17,7 +17,7 @@ from hmepol_cli.envs import World
 from hmepol_cli.plots import save_run_plots
 from hmepol_cli.population import PolicyPopulation
 from hmepol_cli.rollout import collect
-from hmepol_cli.rundir import save_positions
+from hmepol_cli.run import save_positions
 
 
 def rollout_positions(

@@ -1,4 +1,5 @@
-"""What the members of a population may differ in: the *member-scalar* keys (issue 23).
+"""A population's members: what they may differ in, the *member-scalar* keys (issue 23), and
+each member's config and run directory from a job's ``seeds=[...]`` or ``members=[...]``.
 
 A population trains runs as one batched program. Members may differ in any key whose value is
 one number per member that changes no tensor's shape: the seed, the corridor's wind, the
@@ -11,11 +12,15 @@ the program, and runs that differ in it cannot be one population.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
-from omegaconf import DictConfig
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf, open_dict
 
+from hmepol_cli import sweeps
 from hmepol_cli.errors import ConfigError
-from hmepol_cli.rundir import RESUMABLE_KEYS, flat_config
+from hmepol_cli.run import RESUMABLE_KEYS, flat_config
 
 MEMBER_KEYS = (
     "seed",
@@ -56,3 +61,56 @@ def check_members(cfgs: Sequence[DictConfig]) -> None:
                 f"the runs of one population may differ only in {', '.join(MEMBER_KEYS)}; "
                 f"these differ in {', '.join(differences[:6])}"
             )
+
+
+def population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
+    """Each member's config, and the run directory the same job with the member's own
+    overrides instead of ``seeds=[...]`` / ``members=[...]`` would have had: a population
+    leaves ordinary runs where the ungrouped sweep would. (A single ``hmepol train
+    seeds=[...]`` puts them in ``<run dir>/seed<s>``.)
+
+    ``members``: one string per member, its own overrides separated by spaces
+    (``"seed=0 wind=0.05"``), composed with the job's others."""
+    from hydra import compose as hydra_compose
+
+    hc = HydraConfig.get()
+    common = [o for o in hc.overrides.task if _key(o) not in ("seeds", "members")]
+    if cfg.seeds:
+        seeds = [int(s) for s in cfg.seeds]
+        if len(set(seeds)) != len(seeds):
+            raise ConfigError(f"seeds={seeds} holds a seed twice")
+        own = [[f"seed={s}"] for s in seeds]
+    else:
+        own = [str(m).split() for m in cfg.members]
+    members = []
+    for i, overrides in enumerate(own):
+        if cfg.seeds:
+            member = cfg.copy()
+            with open_dict(member):
+                member.seed, member.seeds = int(overrides[0].partition("=")[2]), None
+        else:
+            member = hydra_compose(config_name="config", overrides=[*common, *overrides])
+        if hc.mode == RunMode.MULTIRUN:
+            run_dir = Path(str(hc.sweep.dir)) / _member_subdir(hc, [*common, *overrides])
+        elif cfg.seeds:
+            run_dir = Path(hc.runtime.output_dir) / f"seed{member.seed}"
+        else:
+            run_dir = Path(hc.runtime.output_dir) / f"member{i}"
+        members.append((member, run_dir))
+    return members
+
+
+def _key(override: str) -> str:
+    """The key an override sets (``+a.b=1`` -> ``a.b``)."""
+    return override.lstrip("+~").partition("=")[0]
+
+
+def _member_subdir(hc: DictConfig, overrides: list[str]) -> str:
+    """hydra.sweep.subdir of the job with these overrides (a population member's own job)."""
+    naming = hc.job.config.override_dirname
+    dirname = sweeps.override_dirname(
+        overrides, list(naming.exclude_keys), naming.item_sep, naming.kv_sep
+    )
+    job = OmegaConf.create({"hydra": OmegaConf.to_container(hc, resolve=False)})
+    job.hydra.job.override_dirname = dirname
+    return str(job.hydra.sweep.subdir)

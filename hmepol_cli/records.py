@@ -13,15 +13,6 @@ import pandas as pd
 from hmepol_cli.mepol import EpochStats
 
 
-def precision_drift(stats: EpochStats) -> float:
-    """Relative difference of the accepted step's KL in the lowered and in full precision
-    (0 in full precision, or when both are ~0)."""
-    u = stats.update
-    if not math.isfinite(u.kl_full_precision) or u.kl_full_precision < 1e-12:
-        return 0.0
-    return abs(u.kl - u.kl_full_precision) / u.kl_full_precision
-
-
 def epoch_rows(
     epoch: int, stats: EpochStats, diverged: bool, n_configurations: int
 ) -> tuple[dict, pd.DataFrame, pd.DataFrame | None]:

@@ -5,7 +5,7 @@ SIGKILL); a person presses Ctrl-C (SIGINT). Either way the command should stop w
 every file a run writes is written to a temporary name and renamed, and a run's checkpoint is
 written after its CSV rows, so abandoning the current epoch loses only that epoch, which the
 next run of the same command recomputes exactly from the last checkpoint. The handler raises
-in the main thread; the run-directory lifecycle (:func:`hmepol_cli.rundir.writing`) records
+in the main thread; the run-directory lifecycle (:func:`hmepol_cli.run.writing`) records
 the runs as interrupted and releases their locks; the CLI prints one line and exits 128 + the
 signal. A second signal while that cleanup runs is ignored.
 """

@@ -1,6 +1,8 @@
 """Training runs: a population of members (one run = a population of one) through the epochs of
-Algorithm 3.1 (:mod:`hmepol_cli.mepol`), with their run directories, checkpoints, CSV rows,
-alarms, progress and evaluations.
+Algorithm 3.1 (:mod:`hmepol_cli.mepol`), with their run directories, checkpoints and
+evaluations. An epoch's statistics leave through one call, :meth:`Trainer.record`: the CSV rows,
+the trackers, run.json and the progress bar, after the member's alarms
+(:mod:`hmepol_cli.alarms`) have judged them.
 
 Members are runs that differ only in their seed, trained as one batched program
 (:mod:`hmepol_cli.population`). Every member has its own run directory, random stream, Adam
@@ -14,6 +16,7 @@ from __future__ import annotations
 import logging
 import math
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +27,7 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from hmepol_cli import mepol
+from hmepol_cli.alarms import MemberAlarms
 from hmepol_cli.envs import make_world
 from hmepol_cli.errors import RunDirError
 from hmepol_cli.evaluation import evaluate_and_save
@@ -32,8 +36,8 @@ from hmepol_cli.mepol import EpochStats, OffPolicySettings
 from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 from hmepol_cli.precision import precision_of
-from hmepol_cli.records import epoch_rows, precision_drift
-from hmepol_cli.rundir import (
+from hmepol_cli.records import epoch_rows
+from hmepol_cli.run import (
     CHECKPOINT,
     EVAL_DIR,
     FINAL_EVAL,
@@ -59,16 +63,16 @@ log = logging.getLogger("hmepol")
 
 @dataclass
 class Member:
-    """One run of the population: its config, directory, random stream and files."""
+    """One run of the population: its config, directory, random stream, alarms and files."""
 
     cfg: DictConfig
     run_dir: Path
     generator: torch.Generator
     directory: RunDirectory
+    alarms: MemberAlarms  # when its numbers stop it, and when they warn
     log: RunTables | None = None  # while the directory is open
     start_epoch: int = 0
     failure: str | None = None  # why it stopped, when its numbers stopped making sense
-    stalled_for: int = 0  # consecutive epochs in which no off-policy step was accepted
     tracking: MemberTracking | None = None  # TensorBoard, W&B, MLflow (logger=[...])
 
 
@@ -104,6 +108,7 @@ class Trainer:
         self.optimizer = PopulationAdam(self.population.params)
         self.members = [
             Member(c, Path(d), make_generator(self.device, c.seed), RunDirectory(Path(d), c),
+                   MemberAlarms(cfg.alarms, Path(d), c.seed, cfg.algo.lr_backtrack_tries),
                    tracking=MemberTracking(c, Path(d)))
             for c, d in zip(cfgs, run_dirs, strict=True)
         ]  # fmt: skip
@@ -262,79 +267,46 @@ class Trainer:
             ]
             if not due:
                 break
-            stats = self.epoch(due)
-            notes = []
-            for s, member_stats in zip(due, stats, strict=True):
-                note = self._record(s, epoch, member_stats)
-                if note:
-                    notes.append(note)
-            bar.set_postfix(
-                H=f"{np.mean([st.entropies.mean() for st in stats]):.3f}",
-                KL=f"{max(st.update.kl for st in stats):.3g}",
-                it=f"{np.mean([st.update.off_iters for st in stats]):.3g}",
-                **({"alarm": ", ".join(notes)} if notes else {}),
-            )
+            self.record(epoch, due, self.epoch(due), bar)
             done = epoch + 1
             if cfg.eval.every and done % cfg.eval.every == 0 and done < cfg.epochs:
                 self.save_evaluation(f"epoch_{done:04d}", epoch)
         bar.close()
 
-    def _record(self, s: int, epoch: int, stats: EpochStats) -> str | None:
-        """Write member s's epoch, or stop it if a number is not finite. -> a note for the bar"""
-        member, alarms = self.members[s], self.cfg.alarms
-        broken = stats.broken or self._non_finite(s, stats)
-        if broken:
-            member.failure = (
-                f"non-finite {', '.join(broken)} at epoch {epoch}: the run stopped there"
+    def record(
+        self, epoch: int, due: Sequence[int], stats: Sequence[EpochStats], bar: tqdm
+    ) -> None:
+        """The one way an epoch's statistics leave the trainer. Each member's alarms judge its
+        stats: a member they stop is recorded as failed; every other gets its CSV rows, its
+        checkpoint, its trackers' scalars and its run.json, then the alarms' warnings. Last, the
+        progress bar shows them all."""
+        notes = []
+        for s, member_stats in zip(due, stats, strict=True):
+            member = self.members[s]
+            own = {name: p[s] for name, p in self.population.params.items()}
+            member.failure = member.alarms.failure(epoch, member_stats, own)
+            if member.failure:
+                member.directory.fail(member.failure, epoch=epoch, last=member.log.last_finite)
+                log.error("%s: %s", member.run_dir, member.failure)
+                notes.append(member.alarms.failed_note())
+                continue
+            diverged = member.alarms.diverged(member_stats)
+            epochs, batches, steps = epoch_rows(
+                epoch, member_stats, diverged, self.world.n_configurations
             )
-            member.directory.fail(member.failure, epoch=epoch, last=member.log.last_finite)
-            log.error("%s: %s", member.run_dir, member.failure)
-            return f"seed {member.cfg.seed} failed"
-        diverged = (
-            stats.history_max > alarms.history_bound or stats.action_max > alarms.action_bound
+            member.log.append(epochs=pd.DataFrame([epochs]), batches=batches, steps=steps)
+            self.save(s, epoch + 1)
+            member.tracking.scalars(epoch, scalars_of(epochs, self.world.configuration_names))
+            member.directory.update(epochs_done=epoch + 1, logged_through=epoch)
+            note = member.alarms.warn(epoch, member_stats)
+            if note:
+                notes.append(note)
+        bar.set_postfix(
+            H=f"{np.mean([st.entropies.mean() for st in stats]):.3f}",
+            KL=f"{max(st.update.kl for st in stats):.3g}",
+            it=f"{np.mean([st.update.off_iters for st in stats]):.3g}",
+            **({"alarm": ", ".join(notes)} if notes else {}),
         )
-        epochs, batches, steps = epoch_rows(epoch, stats, diverged, self.world.n_configurations)
-        member.log.append(epochs=pd.DataFrame([epochs]), batches=batches, steps=steps)
-        self.save(s, epoch + 1)
-        member.tracking.scalars(epoch, scalars_of(epochs, self.world.configuration_names))
-        member.directory.update(epochs_done=epoch + 1, logged_through=epoch)
-        if diverged:
-            self._warn_divergence(s, epoch, stats)
-        drift = precision_drift(stats)
-        if drift > alarms.precision_drift:
-            log.warning(
-                "%s: epoch %d: the lowered precision's KL is %.1f%% off the full-precision one "
-                "(alarms.precision_drift = %g): use precision=float32 from here",
-                member.run_dir,
-                epoch,
-                100 * drift,
-                alarms.precision_drift,
-            )
-        member.stalled_for = member.stalled_for + 1 if stats.update.off_iters == 0 else 0
-        if member.stalled_for >= alarms.stall_epochs:
-            log.warning(
-                "%s: no off-policy step accepted for %d epochs (to epoch %d): the trust region "
-                "rejects every step even after %d learning-rate reductions",
-                member.run_dir,
-                member.stalled_for,
-                epoch,
-                self.cfg.algo.lr_backtrack_tries,
-            )
-            return f"seed {member.cfg.seed} stalled"
-        return "diverging" if diverged else None
-
-    def _non_finite(self, s: int, stats: EpochStats) -> list[str]:
-        """The quantities of member s's epoch that are not finite, by name."""
-        params = self.population.params
-        checks = {
-            "entropy": bool(np.isfinite(stats.entropies).all()),
-            "KL": math.isfinite(stats.update.kl),
-            "history": math.isfinite(stats.history_max),
-            "actions": math.isfinite(stats.action_max),
-            "log-std": bool(torch.isfinite(params["log_std"][s]).all()),
-            "policy weights": all(bool(torch.isfinite(v[s]).all()) for v in params.values()),
-        }
-        return [name for name, ok in checks.items() if not ok]
 
     def epoch(self, due: list[int] | None = None) -> list[EpochStats]:
         """One epoch of Algorithm 3.1 (:func:`hmepol_cli.mepol.epoch`) for the members ``due``
@@ -390,16 +362,3 @@ class Trainer:
         for member in self.members:
             member.tracking.image(step, "heatmap", member.run_dir / EVAL_DIR / name / "heatmap.png")
         return paths
-
-    def _warn_divergence(self, s: int, epoch: int, stats: EpochStats) -> None:
-        alarms = self.cfg.alarms
-        log.warning(
-            "%s: epoch %d: the policy is diverging: max |h'| = %.3g (alarms.history_bound = %g), "
-            "max |a| = %.3g (alarms.action_bound = %g)",
-            self.members[s].run_dir,
-            epoch,
-            stats.history_max,
-            alarms.history_bound,
-            stats.action_max,
-            alarms.action_bound,
-        )

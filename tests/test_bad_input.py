@@ -190,7 +190,9 @@ def test_a_bad_checkpoint_is_refused_in_one_line_and_runs_no_code(tmp_path, caps
 REPORT_AND_SHOW = [
     (["report", "/no/such/folder"], "/no/such/folder"),
     (["show", "env=moon"], "moon"),
-    (["show", "env=gym"], "env='gym' cannot be drawn"),
+    (["show", "env=gym"], "env=gym needs env.id"),
+    (["show", "env=slope", "env.id=Pendulum-v1"], "slope takes no such key"),
+    (["show", "env=gym", "env.id=NoSuchWorld-v0"], "not a registered Gymnasium id"),
     (["show", "wind=abc"], "abc"),
     (["show", "wind=-1"], "wind=-1.0"),
     (["show", "wind=inf"], "wind=inf"),

@@ -414,3 +414,40 @@ def test_particles_after_an_episode_ended_take_no_part_in_the_entropy(tmp_path):
         live = x[rows][rollout.alive[0, rows]].numpy()
         assert stats.entropies[batch] == pytest.approx(knn_entropy_by_hand(live, 3), rel=1e-5)
     assert stats.floor_share == 0.0
+
+
+# ------------------------------------------------------------------ hmepol show
+def test_random_visits_follow_each_configuration_within_the_action_bounds():
+    """Uniform actions in [-0.5, 0.5] (the walker refuses any other): the mean end of 200
+    steps is 200 x drift, about 0 and 20 here (one episode's end has std ~4)."""
+    from hmepol_cli.envs.render import random_visits
+
+    world = walk_world(configs=[{"drift": 0.0}, {"drift": 0.1}])
+    visits = random_visits(world, 32, 200)
+    assert set(visits) == {0, 1} and visits[0].shape == (32, 201, 2)
+    assert np.abs(visits[0][:, 0, 0]).max() <= 0.1  # the starts: x_0 in [-0.1, 0.1]
+    assert abs(visits[0][:, -1, 0].mean()) < 3 and abs(visits[1][:, -1, 0].mean() - 20) < 3
+    moves = visits[1][:, 1:, 1] - 0.1  # the projection's second index: the last move
+    assert moves.min() >= -MAX_STEP - 1e-6 and moves.max() <= MAX_STEP + 1e-6
+    assert moves.std() > 0.25  # uniform in [-0.5, 0.5]: std 0.29
+    again = random_visits(world, 32, 200)
+    assert all(np.array_equal(visits[c], again[c]) for c in visits)  # one seed, one picture
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        [f"env.id={WALK_ID}", "env.configs=[{drift:0.0},{drift:0.1}]"],
+        ["env.id=Pendulum-v1", "env.configs=[{g:5.0},{g:15.0}]", "env.projection=[0,2]"],
+    ],
+    ids=["walk", "pendulum"],
+)
+def test_show_draws_a_gymnasium_world_a_panel_per_configuration(tmp_path, capsys, overrides):
+    import matplotlib.image as mpimg
+
+    from hmepol_cli.cli import main
+
+    main(["show", "env=gym", *overrides, "--out", str(tmp_path / "world.png")])
+    assert "drawn to" in capsys.readouterr().out
+    image = mpimg.imread(tmp_path / "world.png")
+    assert image.shape[1] > 1.4 * image.shape[0]  # two panels side by side

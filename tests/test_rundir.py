@@ -15,7 +15,7 @@ import torch
 
 from hmepol_cli.cli import train_runs
 from hmepol_cli.errors import RunDirError, RunFailure
-from hmepol_cli.rundir import (
+from hmepol_cli.run import (
     CHECKPOINT,
     COMMANDS,
     CONFIG,
@@ -82,7 +82,7 @@ def test_continuing_a_run_with_another_config_is_refused_naming_the_keys(tmp_pat
 def test_a_setting_added_later_as_null_is_no_other_config():
     """A run started before a key existed (env.id, env.features ...) continues with a config
     that holds it as null; a key that is set, or removed while set, is a difference."""
-    from hmepol_cli.rundir import identity_differences
+    from hmepol_cli.run import identity_differences
 
     old = {"env": {"name": "slope"}, "algo": {"lr": 0.1}}
     assert (
@@ -178,7 +178,7 @@ def test_a_member_whose_numbers_stop_being_finite_fails_alone_and_says_what(tmp_
 def test_train_runs_reports_a_failed_member_as_a_failure(tmp_path, monkeypatch):
     cfg = compose_cfg("epochs=2", "progress=false", "algo.lr=1e-3")
     monkeypatch.setattr(
-        "hmepol_cli.trainer.Trainer._non_finite", lambda self, s, stats: ["log-std"]
+        "hmepol_cli.alarms.MemberAlarms.non_finite", lambda self, stats, params: ["log-std"]
     )
     with pytest.raises(RunFailure, match="non-finite log-std at epoch 0"):
         train_runs([(cfg, tmp_path / "run")])

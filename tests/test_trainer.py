@@ -284,7 +284,7 @@ def test_diagnostics_write_every_step_and_change_no_number(tmp_path):
 
 
 def test_kept_checkpoints_hold_the_policy_of_their_epoch(tmp_path):
-    from hmepol_cli.rundir import load_checkpoint, resolve_checkpoint
+    from hmepol_cli.run import load_checkpoint, resolve_checkpoint
 
     trainer = tiny_trainer(tmp_path, "epochs=4", "checkpoint.keep_every=2")
     trainer.train()

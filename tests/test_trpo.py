@@ -27,7 +27,7 @@ from hmepol_cli.finetune.trpo import (
 )
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
-from hmepol_cli.rundir import (
+from hmepol_cli.run import (
     CHECKPOINT,
     CONFIG,
     FINETUNE_CSV,

@@ -3,6 +3,10 @@ fine-tuning and the report talk to: the 2-D navigation worlds
 (:class:`~hmepol_cli.envs.base.NavigationWorld`) and any Gymnasium environment
 (:class:`~hmepol_cli.envs.gym_world.GymWorld`) alike.
 
+A world is made from its ``env`` config entry (:meth:`World.from_config`, which
+:func:`hmepol_cli.envs.make_world` calls; :meth:`World.check_config` refuses a bad entry before a
+run starts).
+
 A rollout of S' members x N trajectories asks the world to :meth:`World.begin` its episodes
 (start states and the random numbers the world and the policy's actions will use, drawn up front
 from each member's generator, in the world's own order), then steps them T times with
@@ -13,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 
@@ -52,6 +56,18 @@ class World(Protocol):
     episodes_end: bool  # the environment can end an episode before T (alive, reward, ended)
     capturable: bool  # steps are tensor operations only: a rollout can be one CUDA graph
     projection: tuple[int, int]  # the two state indices pictures draw (plane())
+
+    @classmethod
+    def from_config(cls, env_cfg: Any) -> World:
+        """The world of an ``env`` config group entry (an EnvConfig or DictConfig: its name and
+        the settings of this kind of world); a bad setting is a ConfigError in one line."""
+        ...
+
+    @classmethod
+    def check_config(cls, env_cfg: Any) -> None:
+        """Refuse a bad ``env`` entry in one line before anything is written (called last by
+        :func:`hmepol_cli.config.validate`; a world may build itself to check, and close)."""
+        ...
 
     @property
     def n_configurations(self) -> int: ...

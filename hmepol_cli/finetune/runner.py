@@ -43,7 +43,7 @@ from hmepol_cli.finetune.task import (
 )
 from hmepol_cli.finetune.trpo import TRPO, TRPOSettings, TRPOStep
 from hmepol_cli.policies import Policy, make_policy
-from hmepol_cli.rundir import (
+from hmepol_cli.run import (
     FINETUNE_CSV,
     TARGETS_JSON,
     RunDirectory,

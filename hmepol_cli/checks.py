@@ -1,0 +1,217 @@
+"""The config a command would run, composed and checked before anything is written.
+
+``hmepol`` composes every config a command would run with Hydra's compose API (each job of a
+sweep), refuses keys the schema lacks and output folders that are files, and validates the
+values (:func:`hmepol_cli.config.validate`), so a mistake is one line and nothing is written.
+Hydra's and OmegaConf's own errors are turned into that one line here: the unknown key with
+the names it is close to, the options of a group, what kind of value a key takes.
+"""
+
+from __future__ import annotations
+
+import re
+import types
+from pathlib import Path
+
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from hmepol_cli import sweeps
+from hmepol_cli.config import validate
+from hmepol_cli.errors import ConfigError
+from hmepol_cli.resume import resumed_config
+from hmepol_cli.run import run_config
+
+CONFIG_MODULE = "hmepol_cli.conf"  # the configs, shipped inside the package
+
+
+def compose(config_name: str, overrides: list[str]) -> DictConfig:
+    """The config ``overrides`` compose to (Hydra's own keys left out), or one clear line."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
+            return hydra_compose(config_name=config_name, overrides=task)
+    except (HydraException, OmegaConfBaseException) as error:
+        raise ConfigError(_hydra_message(error, config_name)) from None
+    except AssertionError:  # OmegaConf, setting a key below a group left at null
+        nested = [o for o in task if "." in o.partition("=")[0]]
+        raise ConfigError(
+            f"cannot apply {' '.join(nested) or ' '.join(task)}: choose its group first "
+            "(e.g. env=corridor, not env.name=corridor)"
+        ) from None
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _hydra_message(error: Exception, config_name: str = "config") -> str:
+    """Hydra's and OmegaConf's errors, as one line that says what is allowed."""
+    text = str(error)
+    key = re.search(r"Key '([^']+)' (?:is )?not in", text) or re.search(
+        r"Could not override '([^']+)'", text
+    )
+    if key:
+        return _unknown_key(key.group(1), config_name)
+    choice = re.search(r"Could not find '([^']+)/([^'/]+)'", text)
+    if choice:
+        group, name = choice.groups()
+        options = _group_options(group)
+        listed = f"; choose one of: {', '.join(options)}" if options else ""
+        return f"{group}={name!r} is not an option of {group}{listed}"
+    merging = re.search(r"Error merging override (\S+?)=(.*)", text)
+    if merging:
+        name, value = merging.groups()
+        kind = _schema_kind(name.lstrip("+~"), config_name)
+        return f"{name}={value!r} is not allowed: {name} takes {kind}"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(error).__name__
+
+
+def _schema(config_name: str):
+    from hmepol_cli.config import Config, FinetuneConfig
+
+    return FinetuneConfig if config_name == "finetune" else Config
+
+
+def _schema_keys(cls, prefix: str = "") -> list[str]:
+    """Every dotted key of a schema dataclass."""
+    import dataclasses
+    import typing
+
+    keys = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        inner = [t for t in typing.get_args(hints[f.name]) or [hints[f.name]]
+                 if dataclasses.is_dataclass(t)]  # fmt: skip
+        keys.append(f"{prefix}{f.name}")
+        if inner:
+            keys += _schema_keys(inner[0], f"{prefix}{f.name}.")
+    return keys
+
+
+def _unknown_key(key: str, config_name: str) -> str:
+    import difflib
+
+    keys = _schema_keys(_schema(config_name))
+    near = difflib.get_close_matches(key, keys, n=3, cutoff=0.6)
+    if not near:  # the right name in the wrong place (lr for algo.lr)
+        leaves = {k.rpartition(".")[2]: k for k in keys}
+        near = [leaves[m] for m in difflib.get_close_matches(key, list(leaves), n=2, cutoff=0.6)]
+    hint = f"; did you mean {' or '.join(near)}?" if near else " (--help lists the settings)"
+    return f"unknown key {key!r}: not a hmepol setting{hint}"
+
+
+def _group_options(group: str) -> list[str]:
+    """The options of a config group: its YAML files (hydra/launcher: ours and Hydra's)."""
+    from importlib.resources import files
+
+    folder = files(CONFIG_MODULE).joinpath(*group.split("/"))
+    options = sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+    if group == "hydra/launcher":
+        options = sorted({*options, "basic", "joblib", "submitit_local", "submitit_slurm"})
+    return options
+
+
+def _schema_kind(key: str, config_name: str) -> str:
+    """What a key of the schema takes, in words."""
+    import dataclasses
+    import typing
+
+    cls = _schema(config_name)
+    *parents, last = key.split(".")
+    try:
+        for part in parents:
+            hint = typing.get_type_hints(cls)[part]
+            cls = next(t for t in typing.get_args(hint) or [hint] if dataclasses.is_dataclass(t))
+        hint = typing.get_type_hints(cls)[last]
+    except (KeyError, StopIteration, TypeError):
+        return "another kind of value"
+    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+    args = [a for a in typing.get_args(hint) if a is not type(None)] if union else [hint]
+    optional = " (or null)" if union and type(None) in typing.get_args(hint) else ""
+    base = args[0]
+    words = {int: "a whole number", float: "a number", bool: "true or false", str: "text"}
+    if typing.get_origin(base) is list:
+        (item,) = typing.get_args(base) or (typing.Any,)
+        kind = {int: "whole numbers", float: "numbers"}.get(item, "values")
+        return f"a list of {kind}, e.g. [300,300]{optional}"
+    return words.get(base, "another kind of value") + optional
+
+
+def check_known_keys(cfg: DictConfig, schema: DictConfig, prefix: str = "") -> None:
+    """Refuse keys the schema does not have (Hydra lets ``+key=value`` add any)."""
+    for key in cfg:
+        path = f"{prefix}{key}"
+        if key not in schema:
+            raise ConfigError(_unknown_key(path, "config"))
+        node, spec = cfg[key], schema[key]
+        if OmegaConf.is_dict(node) and OmegaConf.is_dict(spec):
+            check_known_keys(node, spec, f"{path}.")
+
+
+def check_output_dirs(overrides: list[str]) -> None:
+    """An output folder given on the command line must be a folder, if it exists; a launcher
+    must be one there is."""
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key == "hydra/launcher" and value not in _group_options("hydra/launcher"):
+            options = ", ".join(_group_options("hydra/launcher"))
+            raise ConfigError(
+                f"hydra/launcher={value!r} is not a launcher; choose one of: {options}"
+            )
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key in ("hydra.run.dir", "hydra.sweep.dir", "output_dir") and value:
+            if Path(value).exists() and not Path(value).is_dir():
+                raise ConfigError(f"{key}={value!r} is a file, not a folder")
+
+
+def check_train(overrides: list[str]) -> DictConfig:
+    """The config of ``hmepol train overrides``, checked, before Hydra writes anything."""
+    from hmepol_cli.config import Config
+
+    check_output_dirs(overrides)
+    resume = next((o.partition("=")[2] for o in overrides if o.startswith("resume=")), None)
+    if resume not in (None, "", "null"):
+        run_config(Path(resume))  # a clear error for a folder that is not a run
+    cfg = compose("config", overrides)
+    check_known_keys(cfg, OmegaConf.structured(Config))
+    if cfg.resume is not None:
+        cfg = resumed_config(cfg, Path(cfg.resume), overrides)
+    validate(cfg)
+    return cfg
+
+
+def check_sweep(overrides: list[str]) -> int:
+    """Check the config of every job a sweep would run, before anything is written. -> jobs"""
+    check_output_dirs(overrides)
+    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    try:
+        jobs = sweeps.jobs(task)
+    except HydraException as error:
+        raise ConfigError(_hydra_message(error, "config")) from None
+    seen = set()
+    for job in jobs:
+        key = tuple(job)
+        if key not in seen:
+            seen.add(key)
+            check_train(list(job))
+    return len(jobs)
+
+
+def check_finetune_overrides(overrides: list[str]) -> DictConfig:
+    """The config of ``hmepol finetune overrides``, checked (its targets included), before
+    Hydra writes anything."""
+    from hmepol_cli.config import FinetuneConfig
+    from hmepol_cli.finetune import check_finetune
+
+    check_output_dirs(overrides)
+    cfg = compose("finetune", overrides)
+    check_known_keys(cfg, OmegaConf.structured(FinetuneConfig))
+    check_finetune(cfg)
+    return cfg
