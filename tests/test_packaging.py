@@ -1,4 +1,5 @@
-"""The package as a new user gets it (issue 35): what `make demo` installs."""
+"""The package as a new user gets it (issue 35): what `make demo` installs, the licence and the
+citation, `hmepol --version`."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import yaml
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
@@ -93,3 +95,44 @@ def test_make_install_and_make_test_do_install_the_extras_the_tests_use():
         assert ("hmepol", {"dev", "mujoco", "tracking"}) in wanted, target
     pulled = installed_closure([("hmepol", {"dev", "tracking"})])
     assert {"mlflow", "wandb", "tensorboard", "pytest", "hypothesis"} <= pulled
+
+
+def test_the_licence_is_mit_and_the_package_says_so():
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("MIT License") and "Copyright (c) 2026 the hmepol authors" in text
+    assert "WITHOUT WARRANTY OF ANY KIND" in text
+    meta = importlib.metadata.metadata("hmepol")
+    assert meta["License-Expression"] == "MIT"
+    assert "LICENSE" in (meta.get_all("License-File") or [])
+
+
+def test_the_citation_file_cites_this_software_the_thesis_mepol_and_alpha_mepol():
+    cff = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    assert cff["cff-version"] == "1.2.0"
+    assert cff["type"] == "software" and cff["title"] and cff["message"] and cff["authors"]
+    assert cff["version"] == importlib.metadata.version("hmepol")
+    assert cff["license"] == "MIT"
+    works = {ref["title"]: ref for ref in cff["references"]}
+    thesis = works[
+        "Unsupervised Pre-Training for Reinforcement Learning via Recursive History Encoders"
+    ]
+    assert thesis["type"] == "thesis"
+    assert [a["family-names"] for a in thesis["authors"]] == ["Maldini"]
+    mepol = works[
+        "Task-Agnostic Exploration via Policy Gradient of a Non-Parametric State Entropy Estimate"
+    ]
+    alpha = works["Unsupervised Reinforcement Learning in Multiple Environments"]
+    assert [a["family-names"] for a in mepol["authors"]] == ["Mutti", "Pratissoli", "Restelli"]
+    assert [a["family-names"] for a in alpha["authors"]] == ["Mutti", "Mancassola", "Restelli"]
+    assert (mepol["year"], alpha["year"]) == (2021, 2022)
+    for paper in (mepol, alpha):
+        assert paper["type"] == "conference-paper" and "AAAI" in paper["collection-title"]
+        assert all(a["given-names"] for a in paper["authors"])
+
+
+@pytest.mark.parametrize("flag", ["--version", "-V"])
+def test_version_prints_the_installed_version(flag, capsys):
+    from hmepol_cli.cli import main
+
+    main([flag])  # the console script's own run is in the wheel test below
+    assert capsys.readouterr().out == f"hmepol {importlib.metadata.version('hmepol')}\n"
