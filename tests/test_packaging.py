@@ -1,13 +1,17 @@
 """The package as a new user gets it (issue 35): what `make demo` installs, the licence and the
-citation, `hmepol --version`."""
+citation, `hmepol --version`, and a built wheel that works with no checkout in sight."""
 
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import re
 import shlex
 import shutil
+import site
 import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -136,3 +140,114 @@ def test_version_prints_the_installed_version(flag, capsys):
 
     main([flag])  # the console script's own run is in the wheel test below
     assert capsys.readouterr().out == f"hmepol {importlib.metadata.version('hmepol')}\n"
+
+
+# --------------------------------------------------------------------------- the wheel
+# Two epochs of a few short trajectories: the whole command, from config to report, in seconds.
+WHEEL_RUN = [
+    "epochs=1",
+    "algo.trajectories=4",
+    "algo.horizon=20",
+    "algo.batch_size=2",
+    "algo.max_off_iters=2",
+    "estimator.k=3",
+    "policy.hidden=[8]",
+    "eval.trajectories=2",
+    "eval.horizon=10",
+    "progress=false",
+]
+
+
+def not_built(folder: str, names: list[str]) -> set[str]:
+    """What the wheel test's copy of the checkout leaves out (shutil.copytree's ignore)."""
+    left = {n for n in names if n == "__pycache__" or n.endswith(".egg-info")}
+    if Path(folder).resolve() == ROOT:
+        left |= {n for n in names if n.startswith(".") or n in ("docs", "outputs", "build", "dist")}
+    return left
+
+
+@pytest.mark.slow
+def test_the_built_wheel_works_from_an_empty_folder_without_the_checkout(tmp_path):
+    assert not tmp_path.resolve().is_relative_to(ROOT), "run the suite with its temp dir elsewhere"
+    # A copy, so that the build's egg-info and build/ stay out of the checkout; without the
+    # results, the runs and the caches, which no build reads.
+    source, dist = tmp_path / "source", tmp_path / "dist"
+    shutil.copytree(ROOT, source, ignore=not_built)
+    # --no-isolation: the build backend installed here, so it builds offline; build makes the
+    # sdist, then the wheel from the unpacked sdist, so a file missing from the sdist fails too.
+    built = subprocess.run(
+        [sys.executable, "-m", "build", "--no-isolation", "--outdir", str(dist), str(source)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-2000:]
+    (wheel,) = dist.glob("hmepol-*.whl")
+    (sdist,) = dist.glob("hmepol-*.tar.gz")
+    version = importlib.metadata.version("hmepol")
+    assert wheel.name.startswith(f"hmepol-{version}-") and sdist.name == f"hmepol-{version}.tar.gz"
+
+    venv, empty = tmp_path / "venv", tmp_path / "empty"
+    empty.mkdir()
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    python = venv / "bin" / "python"
+    site_dir = Path(
+        subprocess.run(
+            [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()
+    )  # fmt: skip
+    # The dependencies are this environment's (offline, seconds): its site folders go on the
+    # new venv's path after the venv's own, as plain path entries, so their .pth files (the
+    # editable install's hook into the checkout among them) are not run. hmepol comes only from
+    # the wheel.
+    (site_dir / "outer-dependencies.pth").write_text("\n".join(sorted(set(site.getsitepackages()))))
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env["PYTHONNOUSERSITE"] = "1"
+    installed = subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
+         "--no-index", "--quiet", str(wheel)],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert installed.returncode == 0, installed.stderr[-2000:]
+
+    def run(*args: str, tool: Path = venv / "bin" / "hmepol") -> subprocess.CompletedProcess:
+        proc = subprocess.run(
+            [str(tool), *args], cwd=empty, capture_output=True, text=True, timeout=300, env=env
+        )
+        assert proc.returncode == 0, f"{args}:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}"
+        return proc
+
+    where = run(
+        "-c",
+        textwrap.dedent(
+            """
+            import importlib.metadata, importlib.resources, sys
+            import hmepol_cli, hydra_plugins.hmepol_population_launcher as launcher
+            from hmepol_cli.cli import main
+            main(["--version"])
+            print(hmepol_cli.__file__)
+            print(launcher.__file__)
+            print(importlib.resources.files("hmepol_cli.conf").joinpath("config.yaml"))
+            print(importlib.metadata.distribution("hmepol").read_text("direct_url.json"))
+            print("\\n".join(sys.path))
+            """
+        ),
+        tool=python,
+    ).stdout.splitlines()
+    printed, package, launcher, conf, direct_url, *path = where
+    assert printed == f"hmepol {version}"  # --version of the wheel's hmepol_cli
+    for inside in (package, launcher, conf):
+        assert Path(inside).resolve().is_relative_to(site_dir.resolve()), inside
+    assert Path(conf).is_file(), conf
+    assert '"editable": true' not in direct_url, direct_url
+    # Nothing else on the path holds a hmepol_cli: the checkout is not seen, however it got in.
+    sources = [p for p in path if (Path(p or empty) / "hmepol_cli").exists()]
+    assert [Path(p).resolve() for p in sources] == [site_dir.resolve()], path
+
+    helped = run("train", "--help").stdout
+    assert "== Config groups" in helped and "env: " in helped and "slope" in helped
+
+    run("train", *WHEEL_RUN, "hydra.run.dir=runs/one")
+    assert len((empty / "runs" / "one" / "epochs.csv").read_text().splitlines()) == 2
+    run("report", "runs", "--out", "report")
+    assert any((empty / "report" / "figures").glob("*.png")), os.listdir(empty / "report")
+    assert "| slope |" in (empty / "report" / "summary.md").read_text()
