@@ -142,6 +142,22 @@ def test_version_prints_the_installed_version(flag, capsys):
     assert capsys.readouterr().out == f"hmepol {importlib.metadata.version('hmepol')}\n"
 
 
+def test_the_checkout_check_sees_what_a_test_leaves_but_not_the_caches(tmp_path):
+    from tests.conftest import checkout_paths
+
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "a.py").write_text("")
+    for cache in (".pytest_cache", "src/__pycache__", "hmepol.egg-info", "venv/lib"):
+        (tmp_path / cache).mkdir(parents=True)
+        (tmp_path / cache / "x").write_text("")
+    (tmp_path / "venv" / "pyvenv.cfg").write_text("")
+    before = checkout_paths(tmp_path)
+    assert before == {"src", "src/a.py"}
+    (tmp_path / "mlruns" / "0").mkdir(parents=True)
+    (tmp_path / "outputs").mkdir()
+    assert checkout_paths(tmp_path) - before == {"mlruns", "mlruns/0", "outputs"}
+
+
 # --------------------------------------------------------------------------- the wheel
 # Two epochs of a few short trajectories: the whole command, from config to report, in seconds.
 WHEEL_RUN = [
