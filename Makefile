@@ -30,13 +30,20 @@ demo: install-demo
 	hmepol finetune init=none $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/scratch
 	hmepol report $(DEMO_DIR) --out $(DEMO_DIR)/report
 
+# The tests run on every CPU (pytest-xdist; TEST_WORKERS=0 for one process): most are one
+# single-threaded process each. Tests that read one expensive run share an xdist_group, so that
+# run is made once, on one worker. logical, not auto: auto counts physical cores where psutil is
+# installed, one on many 2-CPU machines.
+TEST_WORKERS ?= logical
+PYTEST = $(PYTHON) -m pytest -n $(TEST_WORKERS) --dist loadgroup
+
 # Installs first, so `make test` also works on a fresh machine (a no-op when already installed).
 test: install
-	$(PYTHON) -m pytest
+	$(PYTEST)
 
 # All but the end-to-end runs of the installed command.
 test-fast: install
-	$(PYTHON) -m pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
 bench:
 	$(PYTHON) -m benchmarks.run
