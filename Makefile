@@ -7,27 +7,43 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
 DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_fraction=0.25
 
-.PHONY: install demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor clean
+.PHONY: install install-demo demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor clean
 
+PIP_INSTALL = $(PYTHON) -m pip install --quiet
+
+# What the demo needs: the package and its core dependencies (no tracking, MuJoCo or test
+# packages, which make a cold install several times slower; tests/test_packaging.py checks it).
+install-demo:
+	$(PIP_INSTALL) "$(TORCH_SPEC)"
+	$(PIP_INSTALL) -e .
+
+# Everything the tests use: the extras too (CI runs this, then make test).
 install:
-	$(PYTHON) -m pip install --quiet "$(TORCH_SPEC)"
-	$(PYTHON) -m pip install --quiet -e ".[dev,mujoco,tracking]"
+	$(PIP_INSTALL) "$(TORCH_SPEC)"
+	$(PIP_INSTALL) -e ".[dev,mujoco,tracking]"
 
 # Trains Mepol and HMepol on a small slope world, fine-tunes both on a goal, and writes the report.
-demo: install
+demo: install-demo
 	hmepol sweep experiment=demo algo=mepol,hmepol hydra.sweep.dir=$(DEMO_DIR)/pretrain
 	hmepol finetune init=$(DEMO_DIR)/pretrain/algo-hmepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/hmepol
 	hmepol finetune init=$(DEMO_DIR)/pretrain/algo-mepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/mepol
 	hmepol finetune init=none $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/scratch
 	hmepol report $(DEMO_DIR) --out $(DEMO_DIR)/report
 
+# The tests run on every CPU (pytest-xdist; TEST_WORKERS=0 for one process): most are one
+# single-threaded process each. Tests that read one expensive run share an xdist_group, so that
+# run is made once, on one worker. logical, not auto: auto counts physical cores where psutil is
+# installed, one on many 2-CPU machines.
+TEST_WORKERS ?= logical
+PYTEST = $(PYTHON) -m pytest -n $(TEST_WORKERS) --dist loadgroup
+
 # Installs first, so `make test` also works on a fresh machine (a no-op when already installed).
 test: install
-	$(PYTHON) -m pytest
+	$(PYTEST)
 
 # All but the end-to-end runs of the installed command.
 test-fast: install
-	$(PYTHON) -m pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
 bench:
 	$(PYTHON) -m benchmarks.run

@@ -70,6 +70,7 @@ commands:
 
 `hmepol COMMAND --help` says what a command does and lists its options. Any Hydra override
 works with train, sweep and finetune (e.g. --cfg job, hydra/launcher=population).
+`hmepol --version` (-V) prints the installed version.
 """
 
 
@@ -440,10 +441,23 @@ def _asks_for_help(args: list[str]) -> bool:
     return any(a in ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info") for a in args)
 
 
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml's, as pip recorded it)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hmepol")
+    except PackageNotFoundError:
+        fail("hmepol is not installed, so it has no version: pip install -e . (or the wheel)")
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
+        return
+    if argv[0] in ("-V", "--version"):
+        print(f"hmepol {package_version()}")
         return
     command, rest = argv[0], argv[1:]
     warnings.formatwarning = _one_line_warning

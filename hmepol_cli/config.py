@@ -119,7 +119,7 @@ class WandbConfig:
 
 @dataclass
 class MlflowConfig:
-    tracking_uri: str | None = None  # null: sqlite:///<cwd>/outputs/mlflow.db
+    tracking_uri: str | None = None  # null: outputs/mlflow.db above the run dir (tracking.py)
     experiment: str = "hmepol"
 
 

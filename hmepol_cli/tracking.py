@@ -25,6 +25,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlparse
 
 from hmepol_cli.errors import ConfigError
 
@@ -181,11 +182,16 @@ class MlflowTracker(Tracker):
         for quiet in ("mlflow", "alembic"):  # their banners are not the run's output
             logging.getLogger(quiet).setLevel(logging.WARNING)
 
-        uri = self.settings.get("tracking_uri") or default_mlflow_uri()
+        uri = self.settings.get("tracking_uri") or default_mlflow_uri(self.run_dir)
         self.client = MlflowClient(uri)
         experiment = self.settings.get("experiment") or "hmepol"
         found = self.client.get_experiment_by_name(experiment)
-        experiment_id = found.experiment_id if found else self.client.create_experiment(experiment)
+        if found:  # its artifact root was fixed when it was made
+            experiment_id = found.experiment_id
+        else:
+            experiment_id = self.client.create_experiment(
+                experiment, artifact_location=mlflow_artifact_root(uri, self.run_dir)
+            )
         parent = state.get("parent")
         if group and parent is None:
             parent = _parent_run(self.client, experiment_id, group)
@@ -227,11 +233,43 @@ TRACKERS: dict[str, type[Tracker]] = {
 }
 
 
-def default_mlflow_uri() -> str:
-    """A SQLite store under outputs/ (of the current folder)."""
-    store = Path("outputs").resolve() / "mlflow.db"
+DATABASES = ("sqlite", "postgresql", "mysql", "mssql")  # MLflow's SQLAlchemy stores
+
+
+def default_store_dir(run_dir: Path) -> Path:
+    """Where a run's MLflow store goes when ``tracking_uri`` names none: the nearest folder
+    above the run directory called outputs (where every run directory goes by default, so one
+    store holds them all), else the folder holding the run directory (a population's members:
+    their own). Never the current folder, which may be anywhere."""
+    run_dir = Path(run_dir).resolve()
+    for folder in run_dir.parents:
+        if folder.name == "outputs":
+            return folder
+    return run_dir.parent
+
+
+def default_mlflow_uri(run_dir: Path) -> str:
+    """A SQLite store, mlflow.db, in :func:`default_store_dir`."""
+    store = default_store_dir(run_dir) / "mlflow.db"
     store.parent.mkdir(parents=True, exist_ok=True)
     return f"sqlite:///{store}"
+
+
+def mlflow_artifact_root(uri: str, run_dir: Path) -> str | None:
+    """The artifact root of an experiment made in the store at ``uri``: beside a SQLite file
+    (mlflow.db -> mlflow-artifacts/), in the default store's folder for another database; None
+    (the store's or the server's own) for a file store or a tracking server. MLflow's default
+    for a database is ./mlruns of whatever folder the command ran in."""
+    scheme = urlparse(uri).scheme.split("+")[0]
+    if scheme not in DATABASES:
+        return None
+    if scheme == "sqlite":
+        # sqlite:///relative.db, sqlite:////absolute.db; sqlite:// is an in-memory store
+        path = uri.split("://", 1)[1][1:].split("?", 1)[0]
+        if path and path != ":memory:":
+            store = Path(path).resolve()
+            return (store.parent / f"{store.stem}-artifacts").as_uri()
+    return (default_store_dir(run_dir) / "mlflow-artifacts").as_uri()
 
 
 def _parent_run(client, experiment_id: str, group: str) -> str:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -11,6 +14,37 @@ from hmepol_cli.policies import make_policy
 
 # The tests use tiny tensors; extra threads only contend with the other processes on the box.
 torch.set_num_threads(1)
+
+CHECKOUT = Path(__file__).resolve().parent.parent
+# What running the suite or the tools may leave in the checkout (all in .gitignore).
+LEFT_ALONE = {".git", ".venv", ".pytest_cache", ".hypothesis", ".ruff_cache", "__pycache__"}
+
+
+def checkout_paths(root: Path = CHECKOUT) -> set[str]:
+    """Every file and folder under ``root``, but the caches and virtual environments."""
+    found = set()
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = [
+            d for d in dirs
+            if d not in LEFT_ALONE and not d.endswith(".egg-info")
+            and not (Path(folder) / d / "pyvenv.cfg").exists()
+        ]  # fmt: skip
+        relative = Path(folder).relative_to(root)
+        found.update(str(relative / name) for name in (*dirs, *files))
+    return found
+
+
+@pytest.fixture(scope="session", autouse=True)
+def the_checkout_gains_no_files():
+    """A test writes only under its temporary folder: whatever appears in the checkout during
+    the suite (an mlruns/ or outputs/ of a command run from the checkout) is an error."""
+    before = checkout_paths()
+    yield
+    gained = sorted(checkout_paths() - before)
+    assert not gained, (
+        f"the test suite left {len(gained)} new path(s) in {CHECKOUT} (a test wrote outside its "
+        f"tmp_path, or something else ran there meanwhile): {', '.join(gained[:20])}"
+    )
 
 
 def _tiny_policy(name: str, seed: int = 0, dtype: torch.dtype = torch.float64):

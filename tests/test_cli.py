@@ -199,19 +199,31 @@ def test_training_raises_entropy_above_the_random_policy(tmp_path):
     assert (rows.kl <= 0.5 + 1e-9).all()
 
 
-def _run_tiny(tmp_path: Path, name: str, *extra: str) -> pd.DataFrame:
-    run = tmp_path / name
-    hmepol("train", *TINY, "epochs=3", f"hydra.run.dir={run}", *extra, cwd=tmp_path)
-    return pd.read_csv(run / "epochs.csv")
+def _tiny_run_args(algo: str, seed: int, run: Path) -> list[str]:
+    return ["train", *TINY, "epochs=2", f"algo={algo}", f"seed={seed}", f"hydra.run.dir={run}"]
+
+
+@pytest.fixture(scope="module")
+def tiny_runs(tmp_path_factory) -> Path:
+    """A folder, runs/, of four finished tiny runs, <algo>-<seed> for mepol and hmepol and seeds
+    0 and 1: trained once for the tests that read them (each is a process of its own)."""
+    folder = tmp_path_factory.mktemp("tiny")
+    for algo in ("mepol", "hmepol"):
+        for seed in (0, 1):
+            hmepol(*_tiny_run_args(algo, seed, folder / "runs" / f"{algo}-{seed}"), cwd=folder)
+    return folder / "runs"
 
 
 @pytest.mark.slow
-def test_same_seed_and_config_give_the_same_curves(tmp_path):
-    a = _run_tiny(tmp_path, "a", "algo=hmepol")
-    b = _run_tiny(tmp_path, "b", "algo=hmepol")
+@pytest.mark.xdist_group("tiny_runs")
+def test_same_seed_and_config_give_the_same_curves(tmp_path, tiny_runs):
+    hmepol(*_tiny_run_args("hmepol", 0, tmp_path / "again"), cwd=tmp_path)
+    a = pd.read_csv(tiny_runs / "hmepol-0" / "epochs.csv")
+    b = pd.read_csv(tmp_path / "again" / "epochs.csv")
     cols = ["entropy", "objective", "entropy_iw", "kl", "off_iters"]
+    assert len(a) == 2
     pd.testing.assert_frame_equal(a[cols], b[cols])
-    c = _run_tiny(tmp_path, "c", "algo=hmepol", "seed=5")
+    c = pd.read_csv(tiny_runs / "hmepol-1" / "epochs.csv")  # another seed
     assert not a["entropy"].equals(c["entropy"])
 
 
@@ -258,32 +270,26 @@ def test_killed_run_resumes_with_every_epoch_once_and_the_same_curves(tmp_path):
 
 
 @pytest.mark.slow
-def test_report_and_finetune_read_what_training_wrote(tmp_path):
-    for algo in ("mepol", "hmepol"):
-        for seed in (0, 1):
-            hmepol(
-                "train",
-                *TINY,
-                "epochs=2",
-                f"algo={algo}",
-                f"seed={seed}",
-                f"hydra.run.dir={tmp_path}/runs/{algo}-{seed}",
-                cwd=tmp_path,
-            )
+@pytest.mark.xdist_group("tiny_runs")
+def test_report_and_finetune_read_what_training_wrote(tmp_path, tiny_runs):
     hmepol(
         "finetune",
-        f"init={tmp_path}/runs/hmepol-0",
+        f"init={tiny_runs}/hmepol-0",
         "epochs=2",
         "episodes=4",
         "horizon=20",
         "targets=1",
         "config=0",
         "progress=false",
-        f"hydra.run.dir={tmp_path}/runs/ft",
+        f"hydra.run.dir={tmp_path}/ft",
         cwd=tmp_path,
     )
-    assert len(pd.read_csv(tmp_path / "runs/ft/finetune.csv")) == 2
-    proc = hmepol("report", str(tmp_path / "runs"), "--out", str(tmp_path / "report"), cwd=tmp_path)
+    assert len(pd.read_csv(tmp_path / "ft/finetune.csv")) == 2
+    # the runs where training left them, the fine-tuning elsewhere: one report of both folders
+    proc = hmepol(
+        "report", str(tiny_runs), str(tmp_path / "ft"), "--out", str(tmp_path / "report"),
+        cwd=tmp_path,
+    )  # fmt: skip
     assert "report written to" in proc.stdout
     index = (tmp_path / "report" / "index.html").read_text()
     figures = sorted(p.name for p in (tmp_path / "report" / "figures").glob("*.png"))

@@ -18,7 +18,9 @@ from tests.test_cli import TINY
 
 pytestmark = pytest.mark.slow
 
-SLOWER = [*TINY, "algo.trajectories=20", "algo.horizon=100", "epochs=12"]
+# Epochs long enough that a signal sent after the second lands in the third, with four to go.
+EPOCHS = 6
+SLOWER = [*TINY, "algo.trajectories=20", "algo.horizon=100", f"epochs={EPOCHS}"]
 TIMES = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time"]
 
 
@@ -51,8 +53,22 @@ def interrupt_after(proc: subprocess.Popen, run: Path, signum: int, epochs: int 
     return proc.returncode, out, err
 
 
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> pd.DataFrame:
+    """epochs.csv of SLOWER run start to end: what every interrupted run must continue to."""
+    plain = tmp_path_factory.mktemp("plain") / "run"
+    subprocess.run(
+        [sys.executable, "-m", "hmepol_cli.cli", "train", *SLOWER, f"hydra.run.dir={plain}"],
+        cwd=plain.parent, check=True, capture_output=True, timeout=300,
+    )  # fmt: skip
+    return pd.read_csv(plain / "epochs.csv")
+
+
+@pytest.mark.xdist_group("uninterrupted")
 @pytest.mark.parametrize("signum, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-def test_a_signal_stops_a_run_which_the_same_command_continues_exactly(tmp_path, signum, code):
+def test_a_signal_stops_a_run_which_the_same_command_continues_exactly(
+    tmp_path, signum, code, uninterrupted
+):
     args = ("train", *SLOWER, f"hydra.run.dir={tmp_path / 'run'}")
     returncode, _, err = interrupt_after(start(tmp_path, *args), tmp_path / "run", signum)
     assert returncode == code
@@ -68,13 +84,7 @@ def test_a_signal_stops_a_run_which_the_same_command_continues_exactly(tmp_path,
     )  # fmt: skip
     assert again.returncode == 0, again.stderr[-2000:]
     resumed = pd.read_csv(tmp_path / "run" / "epochs.csv")
-    assert list(resumed.epoch) == list(range(12))
-    plain = tmp_path / "plain"
-    subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "train", *SLOWER, f"hydra.run.dir={plain}"],
-        cwd=tmp_path, check=True, capture_output=True, timeout=300,
-    )  # fmt: skip
-    uninterrupted = pd.read_csv(plain / "epochs.csv")
+    assert list(resumed.epoch) == list(range(EPOCHS))
     pd.testing.assert_frame_equal(
         resumed.drop(columns=TIMES), uninterrupted.drop(columns=TIMES), check_exact=True
     )

@@ -64,9 +64,23 @@ def test_a_job_line_reaches_the_shared_stream_in_one_write():
     assert stream.writes == ["hmepol: job 3 finished\n"]  # print would write the newline apart
 
 
+# Issue 23's grid: two winds by two seeds of the corridor. One joblib sweep of it serves the
+# tests that only read its runs (the slowest part of the suite; each job is a process of its own).
+GRID = ("env=corridor", "algo=mepol", "wind=0.05,0.4", "seed=0,1", "algo.batch_size=1",
+        "algo.trajectories=4", "progress=true")  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def grid_sweep(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """(folder, the finished sweep) of GRID on the default (joblib) launcher, in folder/sweep."""
+    folder = tmp_path_factory.mktemp("plain")
+    return folder, sweep(folder, *GRID)
+
+
 @pytest.mark.slow
-def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again(tmp_path):
-    proc = sweep(tmp_path, "env=corridor", "wind=0.05,0.4", "seed=0,1", "progress=true")
+@pytest.mark.xdist_group("grid_sweep")
+def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again(grid_sweep):
+    tmp_path, proc = grid_sweep
     assert proc.returncode == 0, proc.stderr[-3000:]
     found = runs(tmp_path / "sweep")
     assert len(found) == 4
@@ -81,7 +95,7 @@ def test_wind_by_seed_sweep_leaves_one_run_per_job_and_skips_them_when_run_again
     finished = [line for line in proc.stdout.splitlines() if " finished: corridor/" in line]
     assert len(finished) == 4, proc.stdout[-4000:]
     assert all("H=" in line and " -> " in line for line in finished)
-    again = sweep(tmp_path, "env=corridor", "wind=0.05,0.4", "seed=0,1")
+    again = sweep(tmp_path, *GRID)
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("already finished") == 4
 
@@ -172,53 +186,20 @@ def test_jobs_whose_programs_are_equal_become_one_population():
 
 
 @pytest.mark.slow
-def test_a_population_sweep_leaves_the_runs_a_sweep_over_seeds_would(tmp_path):
-    """Three seeds through the population launcher: the three run directories an ordinary sweep
-    writes, with its curves, read by the report like any others, and skipped when run again."""
-    for folder in ("population", "plain"):
-        (tmp_path / folder).mkdir()
-    grouped = sweep(tmp_path / "population", "seed=0,1,2", "hydra/launcher=population")
-    assert grouped.returncode == 0, grouped.stderr[-3000:]
-    assert "3 runs as 1 job (populations of 3 members)" in grouped.stdout
-    plain = sweep(tmp_path / "plain", "seed=0,1,2", "hydra/launcher=basic")
-    assert plain.returncode == 0, plain.stderr[-3000:]
-    members, separate = runs(tmp_path / "population" / "sweep"), runs(tmp_path / "plain" / "sweep")
-    assert sorted(d.name for d in members) == sorted(d.name for d in separate)
-    assert len(members) == 3
-    for run_dir in separate:
-        twin = tmp_path / "population" / "sweep" / run_dir.name
-        assert OmegaConf.to_yaml(members[twin]) == OmegaConf.to_yaml(separate[run_dir])
-        drop = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time"]
-        a = pd.read_csv(twin / "epochs.csv").drop(columns=drop)
-        b = pd.read_csv(run_dir / "epochs.csv").drop(columns=drop)
-        pd.testing.assert_frame_equal(a, b)
-    report = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "population" / "sweep")],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert report.returncode == 0 and "3 runs used" in report.stdout, report.stderr[-2000:]
-    again = sweep(tmp_path / "population", "seed=0,1,2", "hydra/launcher=population")
-    assert again.returncode == 0 and again.stdout.count("already finished") == 3
-
-
-@pytest.mark.slow
-def test_a_sweep_over_winds_and_seeds_runs_as_one_population_of_four(tmp_path):
+@pytest.mark.xdist_group("grid_sweep")
+def test_a_sweep_over_winds_and_seeds_runs_as_one_population_of_four(tmp_path, grid_sweep):
     """Issue 23: hmepol sweep env=corridor algo=mepol wind=0.05,0.4 seed=0,1 with the
     population launcher is one job of four members, each with its wind in its config and
-    run.json, in the run directories the ungrouped sweep writes, and the report reads them."""
-    args = ("env=corridor", "algo=mepol", "wind=0.05,0.4", "seed=0,1", "algo.batch_size=1",
-            "algo.trajectories=4")  # fmt: skip
-    for folder in ("population", "plain"):
-        (tmp_path / folder).mkdir()
-    grouped = sweep(tmp_path / "population", *args, "hydra/launcher=population")
+    run.json, in the run directories the ordinary sweep writes (the same configs, the same
+    curves), which the report reads like any others and a second sweep skips."""
+    plain_folder, plain = grid_sweep
+    assert plain.returncode == 0, plain.stderr[-3000:]
+    grouped = sweep(tmp_path, *GRID, "hydra/launcher=population")
     assert grouped.returncode == 0, grouped.stderr[-3000:]
     assert "4 runs as 1 job (populations of 4 members)" in grouped.stdout
-    plain = sweep(tmp_path / "plain", *args, "hydra/launcher=basic")
-    assert plain.returncode == 0, plain.stderr[-3000:]
-    members, separate = runs(tmp_path / "population" / "sweep"), runs(tmp_path / "plain" / "sweep")
+    members, separate = runs(tmp_path / "sweep"), runs(plain_folder / "sweep")
     assert sorted(d.name for d in members) == sorted(d.name for d in separate)
+    assert len(members) == 4
     for run_dir, cfg in members.items():
         info = json.loads((run_dir / "run.json").read_text())
         assert info["wind"] == cfg.wind == cfg.env.wind and info["seed"] == cfg.seed
@@ -227,16 +208,23 @@ def test_a_sweep_over_winds_and_seeds_runs_as_one_population_of_four(tmp_path):
     ]  # fmt: skip
     drop = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "wall_time"]
     for run_dir in separate:
-        a = pd.read_csv(tmp_path / "population" / "sweep" / run_dir.name / "epochs.csv")
+        twin = tmp_path / "sweep" / run_dir.name
+        # the same config but for progress, a display switch that parallel jobs turn off
+        same, other = members[twin].copy(), separate[run_dir].copy()
+        assert (same.pop("progress"), other.pop("progress")) == (True, False)
+        assert OmegaConf.to_yaml(same) == OmegaConf.to_yaml(other)
+        a = pd.read_csv(twin / "epochs.csv")
         b = pd.read_csv(run_dir / "epochs.csv")
         pd.testing.assert_frame_equal(a.drop(columns=drop), b.drop(columns=drop), check_exact=True)
     report = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "population" / "sweep")],
+        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "sweep")],
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert report.returncode == 0 and "4 runs used" in report.stdout, report.stderr[-2000:]
+    again = sweep(tmp_path, *GRID, "hydra/launcher=population")
+    assert again.returncode == 0 and again.stdout.count("already finished") == 4
 
 
 @pytest.mark.slow

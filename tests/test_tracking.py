@@ -120,7 +120,7 @@ def test_each_member_of_a_population_is_a_tracking_run_of_its_own(tmp_path):
     proc = hmepol("train", *TINY, "epochs=3", "seeds=[0,1]", LOGGERS,
                   f"hydra.run.dir={tmp_path / 'pop'}", cwd=tmp_path)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
-    store = tmp_path / "outputs" / "mlflow.db"
+    store = tmp_path / "pop" / "mlflow.db"  # the members' folder: no outputs/ above them
     runs = mlflow_runs(store)
     parents = set()
     for seed in (0, 1):
@@ -168,7 +168,7 @@ def test_a_killed_run_continues_its_tracking_runs_with_every_epoch_once(tmp_path
     assert again.returncode == 0, again.stderr[-3000:]
     truth = expected(run)
     assert [s for s, _ in truth] == list(range(10))
-    store = tmp_path / "outputs" / "mlflow.db"
+    store = tmp_path / "mlflow.db"
     for name, got in (
         ("tensorboard", tensorboard_entropy(run)),
         ("wandb", wandb_entropy(run)),
@@ -177,6 +177,45 @@ def test_a_killed_run_continues_its_tracking_runs_with_every_epoch_once(tmp_path
         assert [s for s, _ in got] == list(range(10)), (name, got)
         assert [v for _, v in got] == pytest.approx([v for _, v in truth], rel=1e-6), name
     assert len(mlflow_runs(store)) == 1  # continued, not a second run
+
+
+@pytest.mark.slow
+def test_mlflow_writes_its_store_and_artifacts_beside_the_run_not_in_the_current_folder(
+    tmp_path,
+):
+    here, elsewhere = tmp_path / "here", tmp_path / "elsewhere"
+    here.mkdir()
+    proc = hmepol("train", *TINY, "epochs=1", "logger=[csv,mlflow]",
+                  f"hydra.run.dir={elsewhere / 'run'}", cwd=here)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert sorted(here.iterdir()) == []  # no mlruns/, no outputs/
+    assert sorted(p.name for p in elsewhere.iterdir()) == ["mlflow-artifacts", "mlflow.db", "run"]
+    (run, client) = mlflow_runs(elsewhere / "mlflow.db")["run"]
+    experiment = client.get_experiment(run.info.experiment_id)
+    assert experiment.artifact_location == (elsewhere / "mlflow-artifacts").as_uri()
+    logged = [a.path for a in client.list_artifacts(run.info.run_id, "heatmap/0000")]
+    assert logged == ["heatmap/0000/heatmap.png"]
+    (picture,) = (elsewhere / "mlflow-artifacts").rglob("heatmap.png")
+    assert picture.read_bytes() == next((elsewhere / "run").rglob("heatmap.png")).read_bytes()
+
+
+def test_the_default_mlflow_store_is_the_outputs_folder_above_the_run_else_beside_it(tmp_path):
+    from hmepol_cli.tracking import default_mlflow_uri, mlflow_artifact_root
+
+    outputs = tmp_path / "outputs"
+    for run in (outputs / "runs" / "a", outputs / "sweep" / "job" / "seed0"):
+        assert default_mlflow_uri(run) == f"sqlite:///{outputs / 'mlflow.db'}"
+    assert default_mlflow_uri(tmp_path / "pop" / "seed1") == f"sqlite:///{tmp_path}/pop/mlflow.db"
+    run = tmp_path / "x" / "run"
+    for uri, root in (
+        (f"sqlite:///{tmp_path}/db/store.db", tmp_path / "db" / "store-artifacts"),
+        ("sqlite:///rel/store.db?timeout=5", Path("rel").resolve() / "store-artifacts"),
+        ("sqlite://", tmp_path / "x" / "mlflow-artifacts"),  # in memory: where the default is
+        ("postgresql+psycopg2://u@host/db", tmp_path / "x" / "mlflow-artifacts"),
+    ):
+        assert mlflow_artifact_root(uri, run) == root.as_uri(), uri
+    for uri in ("http://localhost:5000", f"file://{tmp_path}/mlruns", str(tmp_path / "mlruns")):
+        assert mlflow_artifact_root(uri, run) is None, uri  # the server's or the store's own
 
 
 def test_a_failing_tracker_is_one_warning_and_the_run_goes_on(tmp_path, recwarn, monkeypatch):
