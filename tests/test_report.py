@@ -899,7 +899,7 @@ def test_exported_runs_rebuild_the_same_summary(tmp_path):
     """docs/results keeps the small files of runs (positions in float16): the report made from
     them gives the summary of the report made from the runs themselves."""
     from hmepol_cli.report.export import export_runs
-    from hmepol_cli.rundir import load_positions
+    from hmepol_cli.run import load_positions
 
     for algo in ("mepol", "hmepol"):
         for seed in (0, 1):

@@ -25,7 +25,7 @@ import pandas as pd
 
 from hmepol_cli.report.runs import Group, Run
 from hmepol_cli.report.stats import proportion_ci
-from hmepol_cli.rundir import STEPS_CSV
+from hmepol_cli.run import STEPS_CSV
 
 DROP_NATS = 1.0
 DROP_FROM = 30

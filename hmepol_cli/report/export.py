@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hmepol_cli.rundir import (
+from hmepol_cli.run import (
     CONFIG,
     EPOCHS_CSV,
     EVAL_DIR,

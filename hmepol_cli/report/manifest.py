@@ -13,7 +13,7 @@ import json
 from pathlib import Path, PurePosixPath
 
 from hmepol_cli.errors import UserError
-from hmepol_cli.rundir import write_json
+from hmepol_cli.run import write_json
 
 MANIFEST = "report.json"
 

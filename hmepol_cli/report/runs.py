@@ -1,6 +1,6 @@
 """Find run directories, load what the trainer wrote, and group runs that differ only by seed.
 
-A run directory is any directory holding ``run.json`` (:mod:`hmepol_cli.rundir` is the
+A run directory is any directory holding ``run.json`` (:mod:`hmepol_cli.run` is the
 contract): config.yaml, run.json (status, epochs_done, env, algo, policy, seed, wind, config
 names/probs, free areas), epochs.csv, batches.csv (which configurations an epoch drew, where its
 entropy_c<c> must be a number), eval/final.npz and, for fine-tuning runs, finetune.csv.
@@ -12,10 +12,8 @@ rest of the report is still built.
 
 from __future__ import annotations
 
-import csv
 import datetime as dt
 import hashlib
-import io
 import json
 import math
 import re
@@ -29,9 +27,10 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
+from hmepol_cli.errors import TableError
 from hmepol_cli.finetune.task import GoalTask, RewardTask
 from hmepol_cli.report.stats import final_value
-from hmepol_cli.rundir import (
+from hmepol_cli.run import (
     BATCHES_CSV,
     CHECKPOINT,
     CONFIG,
@@ -43,6 +42,7 @@ from hmepol_cli.rundir import (
     hashable_value,
     load_positions,
 )
+from hmepol_cli.run import read_table as run_read_table
 
 # Config keys that say how a run was executed, not what was run: never a reason to split groups.
 RUN_SPECIFIC_KEYS = {
@@ -90,7 +90,6 @@ REQUIRED_FINETUNE_COLUMNS = ("epoch", "target", "config", "return", "algo_init",
 # The columns the report reads as numbers: a field that is not one makes the run unusable.
 NUMERIC_EPOCH_COLUMNS = re.compile(r"epoch|entropy(_c\d+)?")
 NUMERIC_FINETUNE_COLUMNS = re.compile(r"epoch|config|return|seed")
-MISSING_FIELDS = ("", "nan", "-nan", "+nan")  # what a CSV writer puts for NaN, any case
 CONFIG_ENTROPY = re.compile(r"entropy_c(\d+)")  # entropy in configuration c (group 1)
 
 
@@ -355,72 +354,12 @@ def load_config(path: Path) -> dict[str, Any]:
 
 
 def read_table(path: Path, required: tuple[str, ...], numeric: re.Pattern) -> pd.DataFrame:
-    """A CSV the trainer wrote, indexed by the line of the file each row is on (for messages).
-
-    Raises :class:`RunError` when the file is cut short, a row does not parse, or a column whose
-    name ``numeric`` matches holds something that is not a number (an empty field is NaN). Other
-    columns become numbers where every field is one. The trainer rewrites its CSVs whole and ends
-    every row with a line end, so a file that stops mid-line was cut (a copy, a full disk), and
-    its last row may hold half a number.
-    """
-    if not path.is_file():
-        raise RunError(f"{path.name} is missing")
+    """A table the run wrote, read by the run package's one reader (:func:`hmepol_cli.run.
+    read_table`); a table it cannot use makes the run one the report skips (RunError)."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise RunError(f"{path.name} is not UTF-8 text") from None
-    except OSError as err:
-        raise RunError(f"{path.name} is unreadable ({type(err).__name__})") from None
-    if not text.strip():
-        raise RunError(f"{path.name} is empty")
-    if not text.endswith("\n"):
-        last = text.count("\n") + 1
-        raise RunError(f"{path.name} is cut short: its last line ({last}) stops mid-line")
-    reader = csv.reader(io.StringIO(text))
-    try:
-        header = next(reader)
-    except csv.Error as err:
-        raise RunError(f"{path.name} line 1 does not parse ({err})") from None
-    if len(set(header)) != len(header):
-        raise RunError(f"{path.name} is corrupt (its header names a column twice)")
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise RunError(f"{path.name} is corrupt (missing columns: {', '.join(missing)})")
-    rows, lines = [], []
-    while True:
-        line = reader.line_num + 1
-        try:
-            row = next(reader)
-        except StopIteration:
-            break
-        except csv.Error as err:
-            raise RunError(f"{path.name} line {line} does not parse ({err})") from None
-        if not row:  # a blank line
-            continue
-        if len(row) != len(header):
-            raise RunError(
-                f"{path.name} line {line} does not parse: {len(row)} fields, "
-                f"the header has {len(header)}"
-            )
-        rows.append(row)
-        lines.append(line)
-    if not rows:
-        raise RunError(f"{path.name} has no rows")
-    frame = pd.DataFrame(rows, columns=header, index=pd.Index(lines, name="line"))
-    for column in frame.columns:
-        fields = frame[column].str.strip()
-        blank = fields.str.lower().isin(MISSING_FIELDS)
-        numbers = pd.to_numeric(fields.mask(blank), errors="coerce")
-        unparsed = numbers.isna() & ~blank
-        if not unparsed.any():
-            frame[column] = numbers
-        elif numeric.fullmatch(column):
-            line = unparsed.idxmax()
-            raise RunError(
-                f"{path.name} line {line} does not parse: "
-                f"{column}={fields[line][:40]!r} is not a number"
-            )
-    return frame
+        return run_read_table(path, required, numeric)
+    except TableError as err:
+        raise RunError(str(err)) from None
 
 
 def _require_finite(frame: pd.DataFrame, columns: tuple[str, ...], name: str) -> None:
