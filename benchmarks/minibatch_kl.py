@@ -1,7 +1,7 @@
 """The mini-batch KL (eq. 2.8) as this project computes it and as the alpha-Mepol code does, on
 identical particles.
 
-Ours (``estimators.kl_divergence``, ``mepol.Surrogate``): the importance weights are normalised
+Ours (``estimators.kl_divergence``, ``Surrogate``): the importance weights are normalised
 within each mini-batch of B trajectories, eq. 2.8 is computed per mini-batch with its own
 neighbour sets, clamped at 0, and averaged over the mini-batches.
 
@@ -45,6 +45,7 @@ from hmepol_cli import estimators, mepol  # noqa: E402
 from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
 from hmepol_cli.config import validate  # noqa: E402
 from hmepol_cli.rollout import collect, draw_configurations  # noqa: E402
+from hmepol_cli.surrogate import Surrogate
 from hmepol_cli.trainer import Trainer  # noqa: E402
 
 
@@ -88,7 +89,7 @@ def preset(world: str, seed: int) -> object:
     return cfg
 
 
-def log_ratios_of(surrogate: mepol.Surrogate) -> tuple[torch.Tensor, float]:
+def log_ratios_of(surrogate: Surrogate) -> tuple[torch.Tensor, float]:
     """log pi'(a|h) - log pi(a|h) of every step at the current parameters, (N, T) float64,
     and the KL our Surrogate itself computes there (its trust region's)."""
     with torch.no_grad():
@@ -97,7 +98,7 @@ def log_ratios_of(surrogate: mepol.Surrogate) -> tuple[torch.Tensor, float]:
     return ratios, float(estimate.kl_one_step[0])
 
 
-def adam_steps(trainer: Trainer, surrogate: mepol.Surrogate, lr: float, steps: int) -> None:
+def adam_steps(trainer: Trainer, surrogate: Surrogate, lr: float, steps: int) -> None:
     """``steps`` Adam steps of the objective's gradient from the current parameters, as the
     off-policy loop takes them when every step is accepted."""
     params = trainer.population.params
@@ -126,7 +127,7 @@ def measure(world: str, seed: int, work: Path, big_steps: int) -> list[dict]:
     initial_adam = trainer.optimizer.member_state_dict(0)
     rows = []
 
-    def row(label: str, surrogate: mepol.Surrogate) -> None:
+    def row(label: str, surrogate: Surrogate) -> None:
         ratios, surrogate_kl = log_ratios_of(surrogate)
         ours = kl_ours(ratios, neighbours.indices, s.batch_size)
         # Our formula here is the Surrogate's own: the same weights, neighbours and clamp.
@@ -148,14 +149,14 @@ def measure(world: str, seed: int, work: Path, big_steps: int) -> list[dict]:
         )
 
     # One epoch of our off-policy loop (the trainer's): the preset's lr, up to 30 steps.
-    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, s)
+    surrogate = Surrogate(trainer.population, rollout, neighbours, members, s)
     result = mepol.off_policy_loop(trainer.population, trainer.optimizer, surrogate, members, s)[0]
     row(f"one epoch: {result.off_iters} steps of lr {a.lr:g}", surrogate)
     # Larger steps from the same initial policy, on the same particles.
     for factor in (10, 100):
         trainer.population.load_member_state_dict(0, initial_policy)
         trainer.optimizer.load_member_state_dict(0, initial_adam)
-        surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, s)
+        surrogate = Surrogate(trainer.population, rollout, neighbours, members, s)
         adam_steps(trainer, surrogate, factor * float(a.lr), big_steps)
         row(f"{big_steps} steps of lr {factor * float(a.lr):g}", surrogate)
     return rows

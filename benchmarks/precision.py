@@ -34,6 +34,7 @@ from benchmarks.run import thesis_config  # noqa: E402
 from hmepol_cli import estimators, mepol  # noqa: E402
 from hmepol_cli.rollout import Rollout, collect, draw_configurations  # noqa: E402
 from hmepol_cli.run import load_checkpoint, resolve_checkpoint  # noqa: E402
+from hmepol_cli.surrogate import Surrogate  # noqa: E402
 from hmepol_cli.trainer import Trainer  # noqa: E402
 
 PRESETS = ("slope_mepol", "slope_hmepol", "corridor_mepol", "corridor_hmepol")
@@ -75,7 +76,7 @@ def one_update(trainer: Trainer, rollout: Rollout, neighbours) -> dict:
     """theta' = theta, then one Adam step, on given particles. -> the numbers compared."""
     members = torch.tensor([0])
     s = trainer.settings
-    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, s)
+    surrogate = Surrogate(trainer.population, rollout, neighbours, members, s)
     rows = torch.arange(1)
     start = surrogate(rows)
     entropies, kl, target = start.entropies, start.kl, start.likelihoods

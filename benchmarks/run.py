@@ -50,6 +50,7 @@ from hmepol_cli.envs import make_world  # noqa: E402
 from hmepol_cli.precision import bf16_runs_fast_here  # noqa: E402
 from hmepol_cli.rollout import collect, draw_configurations  # noqa: E402
 from hmepol_cli.seeding import keep_freed_memory  # noqa: E402
+from hmepol_cli.surrogate import Surrogate  # noqa: E402
 from hmepol_cli.trainer import Trainer  # noqa: E402
 
 ENVS = ("slope", "corridor")
@@ -126,7 +127,7 @@ def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> 
 def off_policy_update(trainer: Trainer, rollout, neighbours) -> list:
     """The off-policy loop of a one-member trainer on given particles and neighbours."""
     first = torch.tensor([0])
-    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, first, trainer.settings)
+    surrogate = Surrogate(trainer.population, rollout, neighbours, first, trainer.settings)
     return mepol.off_policy_loop(
         trainer.population, trainer.optimizer, surrogate, first, trainer.settings
     )

@@ -23,7 +23,7 @@ those are the hidden layers' (300, 300) matrix products. ``precision`` chooses h
   choice is the machine's: a run resumed on another machine may continue in the other one.
 
 Whatever the precision, the likelihoods the sampling policy is compared with are computed the
-same way as the target's (:class:`hmepol_cli.mepol.Surrogate`), so that at theta' = theta the
+same way as the target's (:class:`hmepol_cli.surrogate.Surrogate`), so that at theta' = theta the
 log-ratios, and both KLs, are exactly 0.
 """
 

@@ -336,3 +336,23 @@ def collect_single(
         until_ended=until_ended,
     )
     return rollout.member(0)
+
+
+def non_finite_rows(rollout: Rollout) -> dict[int, list[str]]:
+    """Rows (members) of a rollout holding non-finite positions, actions or histories, with
+    their names. One transfer."""
+    checks = {"positions": rollout.states, "actions": rollout.actions, "history": rollout.histories}
+    finite = torch.stack(
+        [
+            torch.isfinite(v).flatten(1).all(dim=1)
+            if v.numel()
+            else torch.ones(v.shape[0], dtype=torch.bool, device=v.device)
+            for v in checks.values()
+        ]
+    ).cpu()  # (3, S')
+    names = list(checks)
+    return {
+        i: [names[j] for j in range(len(names)) if not finite[j, i]]
+        for i in range(finite.shape[1])
+        if not finite[:, i].all()
+    }

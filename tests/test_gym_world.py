@@ -20,9 +20,9 @@ from hmepol_cli.envs import ENVIRONMENTS, GymWorld, make_world
 from hmepol_cli.errors import ConfigError
 from hmepol_cli.evaluation import rollout_positions
 from hmepol_cli.finetune.task import collect_episodes
-from hmepol_cli.mepol import _live
 from hmepol_cli.population import PolicyPopulation
 from hmepol_cli.rollout import collect, collect_single, draw_configurations
+from hmepol_cli.surrogate import _live
 from hmepol_cli.trainer import Trainer
 from tests.gym_toy import MAX_STEP, WALK_ID
 

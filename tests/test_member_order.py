@@ -1,5 +1,5 @@
 """The members of a population may come in any order: each member's neighbour sets, weights and
-KL are its own whatever the order of the rows (mepol._select_batches)."""
+KL are its own whatever the order of the rows (_select_batches)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hmepol_cli import estimators, mepol
+from hmepol_cli import estimators
+from hmepol_cli.surrogate import _select_batches
 from tests.test_trainer import population
 
 
@@ -24,7 +25,7 @@ def test_selected_batches_follow_the_rows_in_any_order(members, m_batches):
     live = torch.rand(s * m_batches, 12, generator=generator) > 0.2
     live[:, :5] = True  # enough live particles for k = 3
     nb = estimators.nearest_neighbours(particles, 3, "kdtree", live)
-    picked = mepol._select_batches(nb, torch.tensor(order), m_batches)
+    picked = _select_batches(nb, torch.tensor(order), m_batches)
     for position, row in enumerate(order):
         mine = slice(row * m_batches, (row + 1) * m_batches)
         there = slice(position * m_batches, (position + 1) * m_batches)

@@ -17,6 +17,7 @@ from hmepol_cli.policies import make_policy
 from hmepol_cli.policies.base import HistoryLinear, OutputLinear
 from hmepol_cli.precision import PRECISIONS, precision_of
 from hmepol_cli.rollout import collect, draw_configurations
+from hmepol_cli.surrogate import Surrogate
 from tests.test_trainer import tiny_trainer
 
 
@@ -75,7 +76,7 @@ def test_at_theta_prime_equal_theta_every_kl_is_exactly_zero_in_bf16(tmp_path, b
     rollout = collect(trainer.world, trainer.population, None, configurations, 40, [gen])
     particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
     neighbours = trainer.settings.estimator.search(particles)
-    surrogate = mepol.Surrogate(
+    surrogate = Surrogate(
         trainer.population, rollout, neighbours, torch.tensor([0]), trainer.settings
     )
     start = surrogate(torch.tensor([0]))
@@ -118,12 +119,12 @@ def test_a_bf16_epoch_is_checked_against_full_precision_and_float32_is_not(tmp_p
     particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
     neighbours = trainer.settings.estimator.search(particles)
     members = torch.tensor([0])
-    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
+    surrogate = Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
     (result,) = mepol.off_policy_loop(
         trainer.population, trainer.optimizer, surrogate, members, trainer.settings
     )
     full = dataclasses.replace(trainer.settings, precision=PRECISIONS["float32"])
-    reference = mepol.Surrogate(trainer.population, rollout, neighbours, members, full)
+    reference = Surrogate(trainer.population, rollout, neighbours, members, full)
     reference.behaviour = surrogate.behaviour_full  # the sampling likelihoods, in float32
     estimate = reference(torch.tensor([0]))
     assert result.kl_full_precision == pytest.approx(float(estimate.kl.detach()), rel=1e-6)

@@ -14,6 +14,7 @@ import torch
 from hmepol_cli import estimators, mepol
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 from hmepol_cli.rollout import collect, draw_configurations
+from hmepol_cli.surrogate import Surrogate, _select_batches
 from hmepol_cli.trainer import Trainer
 from tests.test_trainer import compose_cfg
 
@@ -78,7 +79,7 @@ def test_the_population_loop_is_algorithm_3_1_for_every_member(tmp_path, option)
                           generators)  # fmt: skip
         particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), a.batch_size)
         neighbours = settings.estimator.search(particles)
-        surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, settings)
+        surrogate = Surrogate(trainer.population, rollout, neighbours, members, settings)
         results = mepol.off_policy_loop(
             trainer.population, trainer.optimizer, surrogate, members, settings
         )
@@ -86,8 +87,8 @@ def test_the_population_loop_is_algorithm_3_1_for_every_member(tmp_path, option)
         for m, (single, adam) in enumerate(singles):
             own = dataclasses.replace(settings, members=(settings.members[m],))
             mine = torch.tensor([m])
-            alone = mepol.Surrogate(single, rollout.rows(mine),
-                                    mepol._select_batches(neighbours, mine, batches),
+            alone = Surrogate(single, rollout.rows(mine),
+                                    _select_batches(neighbours, mine, batches),
                                     torch.tensor([0]), own)  # fmt: skip
             expected = mepol.reference_loop(single, adam, alone, own)
             assert_same_result(results[m], expected)

@@ -16,6 +16,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hmepol_cli import estimators, mepol
 from hmepol_cli.cli import register_configs  # noqa: F401  (schema and resolvers)
 from hmepol_cli.rollout import collect, draw_configurations
+from hmepol_cli.surrogate import Surrogate
 from hmepol_cli.trainer import Trainer
 from tests.test_cli import TINY
 
@@ -181,7 +182,7 @@ def first_step(tmp_path, trust_region: str, kl_threshold: float):
     particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
     neighbours = estimators.nearest_neighbours(particles, 5)
     members = torch.tensor([0])
-    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
+    surrogate = Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
     (result,) = mepol.off_policy_loop(
         trainer.population, trainer.optimizer, surrogate, members, trainer.settings
     )
@@ -249,7 +250,7 @@ def test_exact_and_one_step_kl_agree_at_full_bptt_and_are_zero_at_the_start(tmp_
     particles = estimators.particles_by_batch(rollout.particles.flatten(0, 1), 5)
     neighbours = estimators.nearest_neighbours(particles, 5)
     members = torch.tensor([0])
-    surrogate = mepol.Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
+    surrogate = Surrogate(trainer.population, rollout, neighbours, members, trainer.settings)
     start = surrogate(torch.tensor([0]))
     assert float(start.kl_one_step.detach()) == 0.0 and float(start.kl_exact) == 0.0
     (result,) = mepol.off_policy_loop(
