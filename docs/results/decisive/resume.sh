@@ -54,8 +54,20 @@ worktree() {
 }
 
 # A run directory saved here but absent (or behind) in the worktree: rebuilt from its resume kit.
+# A finished run (no kit) gets back its small files, so that the sweep skips it, not reruns it.
 restore() {
   local kit run target
+  for run in "$HERE"/*/*/; do
+    run=${run%/}
+    grep -qs '"status": "finished"' "$run/run.json" || continue
+    target=$OUT/${run#"$HERE"/}
+    grep -qs '"status": "finished"' "$target/run.json" && continue
+    echo "restoring the finished $target from its small files"
+    rm -rf "$target"; mkdir -p "$target"
+    cp "$run/config.yaml" "$run/run.json" "$run/epochs.csv" "$target/"
+    [ -f "$run/steps.csv.gz" ] && gunzip -c "$run/steps.csv.gz" > "$target/steps.csv"
+    [ -d "$run/eval" ] && cp -r "$run/eval" "$target/"
+  done
   for kit in "$HERE"/*/*/resume; do
     [ -f "$kit/last.pt" ] || continue
     run=$(dirname "$kit")
