@@ -22,8 +22,9 @@ episode is fixed by (configuration, seed, actions), whatever slot or worker runs
 seed and config give the same curves on the same machine, with any number of workers.
 
 Episodes the environment ends before the horizon T (``terminated`` or ``truncated``) keep their
-last state for the remaining steps, so every trajectory has T particles; the steps after the end
-are marked not ``alive`` and their actions count in no importance weight. Gymnasium's registered
+last state for the remaining steps, so every trajectory keeps T slots; the steps after the end are
+marked not ``alive``: they are no particles of the estimate (``estimators.Neighbours.live``) and
+their actions count in no importance weight. Gymnasium's registered
 time limit is not applied (``max_episode_steps=-1`` unless a configuration sets it): the horizon
 is hmepol's T.
 """
@@ -183,8 +184,9 @@ class GymEpisodes:
     """S' x N episodes in progress, one per slot of a pool, stepped together (the world's
     :class:`~hmepol_cli.envs.world.Episodes`).
 
-    An episode the environment ends keeps its last state (and gets reward 0) for the remaining
-    steps; once every episode has ended the environments are no longer stepped."""
+    An episode the environment ends keeps its last state (and gets reward 0) in the slots of its
+    remaining steps, marked not alive (no particles); once every episode has ended the
+    environments are no longer stepped."""
 
     def __init__(
         self, world: GymWorld, pool: SlotPool, configurations: torch.Tensor, seeds: torch.Tensor
