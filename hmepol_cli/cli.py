@@ -49,6 +49,7 @@ from hmepol_cli.errors import (
     UserError,
 )
 from hmepol_cli.members import population_members
+from hmepol_cli.precision import auto_reason, device_type
 from hmepol_cli.resume import resumed_config
 from hmepol_cli.run import RUN_INFO, read_json
 from hmepol_cli.signals import preemptible
@@ -228,6 +229,8 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
                 cfg.progress = False
         for _, run_dir in todo:
             say(f"hmepol: training into {run_dir}")
+        if todo[0][0].get("precision") == "auto":
+            say(f"hmepol: {auto_reason(device_type(str(todo[0][0].device)))}")
         started = time.monotonic()
         trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
         try:

@@ -32,14 +32,12 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import functools
-import logging
 from dataclasses import dataclass
 
 import torch
 
 from hmepol_cli import hardware
 
-log = logging.getLogger("hmepol")
 AUTO_MARGIN = 1.3  # precision=auto: bf16 only where its products are this many times faster
 
 _LOWERED_HISTORY = contextvars.ContextVar("lowered_history", default=False)
@@ -94,11 +92,11 @@ def precision_of(cfg) -> Precision:
         if name == "float32" and cfg.get("matmul_precision", "highest") != "highest":
             name = "tf32"
     if name == "auto":
-        return auto_precision(_device_type(str(cfg.get("device", "cpu"))))
+        return auto_precision(device_type(str(cfg.get("device", "cpu"))))
     return PRECISIONS[str(name)]
 
 
-def _device_type(device: str) -> str:
+def device_type(device: str) -> str:
     return "cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu"
 
 
@@ -114,9 +112,18 @@ def auto_precision(device_type: str) -> Precision:
     """precision=auto on this device: bf16 where it has bfloat16 arithmetic and the product of
     a hidden layer measured at least AUTO_MARGIN times faster, else float32."""
     if not bf16_runs_fast_here(device_type):
-        log.info("precision=auto: float32 (no bfloat16 arithmetic on %s)", device_type)
         return PRECISIONS["float32"]
+    return PRECISIONS["bf16" if hardware.bf16_speedup(device_type) >= AUTO_MARGIN else "float32"]
+
+
+def auto_reason(device_type: str) -> str:
+    """What precision=auto chose on this device and why, in one line (a run says it as it
+    starts; run.json keeps the choice)."""
+    chosen = auto_precision(device_type).name
+    if not bf16_runs_fast_here(device_type):
+        return f"precision=auto chose {chosen}: this {device_type} has no bfloat16 arithmetic"
     speedup = hardware.bf16_speedup(device_type)
-    chosen = "bf16" if speedup >= AUTO_MARGIN else "float32"
-    log.info("precision=auto: %s (bf16 products measured %.2fx float32's)", chosen, speedup)
-    return PRECISIONS[chosen]
+    return (
+        f"precision=auto chose {chosen}: a hidden layer's bf16 products measured {speedup:.2f}x "
+        f"float32's here (bf16 from {AUTO_MARGIN}x)"
+    )

@@ -92,7 +92,7 @@ class Trainer:
         check_members(cfgs)  # they may differ only in member-scalar keys (hmepol_cli/members.py)
         self.cfg = cfg = cfgs[0]  # what the members share: the program
         self.device = get_device(cfg.device)
-        precision = precision_of(cfg)
+        self.precision = precision = precision_of(cfg)  # auto: what this machine chose
         self.dtype = precision.dtype
         if self.device.type == "cuda":
             torch.set_float32_matmul_precision(precision.matmul)
@@ -180,6 +180,7 @@ class Trainer:
                 seed=int(member.cfg.seed),
                 **{"wind": None, "env_id": None, **self.world.facts(s)},
                 epochs=int(self.cfg.epochs),
+                precision=self.precision.name,
                 epochs_done=int(member.directory.info().get("epochs_done", 0)),
                 config_names=list(self.world.configuration_names),
                 config_probs=list(self.world.configuration_probs),

@@ -98,3 +98,17 @@ def test_precision_auto_picks_bf16_only_where_it_has_units_and_measures_faster(
 def test_the_bf16_speedup_is_a_measured_ratio():
     ratio = hardware.bf16_speedup("cpu", rows=64, width=16)
     assert 0 < ratio < float("inf")
+
+
+@pytest.mark.parametrize(
+    "text, speedup, chosen, why",
+    [
+        (AVX2_EPYC, 50.0, "float32", "this cpu has no bfloat16 arithmetic"),
+        (BF16_XEON, 2.0, "bf16", "a hidden layer's bf16 products measured 2.00x float32's"),
+        (BF16_XEON, 1.1, "float32", "a hidden layer's bf16 products measured 1.10x float32's"),
+    ],
+)
+def test_precision_auto_says_what_it_chose_and_why(cpu, monkeypatch, text, speedup, chosen, why):
+    cpu(text)
+    monkeypatch.setattr(hardware, "bf16_speedup", lambda device: speedup)
+    assert precision.auto_reason("cpu").startswith(f"precision=auto chose {chosen}: {why}")
