@@ -74,7 +74,10 @@ reproduce-quick-multigrid:
 	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/multigrid
 
 # RESULTS.md's figures and tables, rebuilt from the runs kept in docs/results/ (about a minute):
-# the chapter 5 runs, the collapse study (issue 26) and the float32 / bf16 curves (issue 22).
+# the chapter 5 runs, the collapse study (issue 26), the float32 / bf16 curves (issue 22) and the
+# decisive experiment (issue 33): its pre-registered tables, rewritten in RESULTS.md between the
+# "decisive tables" markers, and its curves per arm in docs/results/decisive/figures, interim
+# while its runs go on (`hmepol report` skips unfinished runs, so it draws none of them yet).
 results:
 	hmepol report docs/results/full docs/results/quick --out docs/results
 	hmepol report docs/results/collapse/n20-* --out docs/results/collapse/report-n20
@@ -82,6 +85,7 @@ results:
 	hmepol report docs/results/collapse/finetune-epoch100 --out docs/results/collapse/report-finetune-epoch100
 	hmepol report docs/results/collapse/finetune-epoch75 --out docs/results/collapse/report-finetune-epoch75
 	hmepol report docs/results/precision --out docs/results/precision/report
+	$(PYTHON) docs/results/decisive/analysis.py --results RESULTS.md --figures docs/results/decisive/figures > /dev/null
 
 # Chapter 5 at the thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid) as
 # populations over hyperparameters (hydra/launcher=population groups each sweep's runs by their

@@ -4,6 +4,7 @@ from the small files kept beside this script:
     python docs/results/decisive/analysis.py            # markdown to stdout
     python docs/results/decisive/analysis.py --out docs/results/decisive/analysis.md
     python docs/results/decisive/analysis.py --results RESULTS.md   # its tables, between markers
+    python docs/results/decisive/analysis.py --figures docs/results/decisive/figures  # the curves
 
 Corridor: per run M_c = mean of entropy_c<c> over epochs 450-499 and M = (M_0 + M_1) / 2; paired
 by seed, HMepol (exact trust region) - Mepol, the 95% Student-t interval and the exact sign-flip
@@ -163,11 +164,120 @@ def multigrid(lines: list[str]) -> None:
     lines.append("")
 
 
+COLOURS = {"A": "#1f77b4", "B": "#9467bd", "C": "#2ca02c", "alphamepol": "#d62728",
+           "hmepol": "#2ca02c"}  # fmt: skip
+MULTIGRID_NAMES = {"alphamepol": "alpha-Mepol", "hmepol": "HMepol"}
+BOUND = {"color": "0.3", "ls": "--", "lw": 1}
+
+
+def draw_arms(ax, arms: dict[str, dict[int, pd.DataFrame]], column: str, names: dict[str, str],
+              colours: dict[str, str]) -> list[str]:  # fmt: skip
+    """Each seed's curve (thin) and the mean over the arm's seeds (thick) over the epochs every
+    seed of the arm has; returns "<arm> <epochs done>" for the title."""
+    notes = []
+    for arm, by_seed in arms.items():
+        if not by_seed:
+            continue
+        done = min(len(t) for t in by_seed.values())
+        for t in by_seed.values():  # a dot on each epoch where the column has gaps
+            ax.plot(t.epoch, t[column], color=colours[arm], lw=0.7, alpha=0.35,
+                    marker="." if t[column].isna().any() else None, ms=3)  # fmt: skip
+        table = pd.concat({s: t.set_index("epoch")[column] for s, t in by_seed.items()}, axis=1)
+        mean = table.loc[: done - 1].mean(axis=1)  # epochs without the column (NaN) skipped
+        ax.plot(mean.index, mean.to_numpy(), color=colours[arm], lw=2,
+                label=f"{names[arm]} (n={len(by_seed)}; epochs 0-{done - 1})")  # fmt: skip
+        notes.append(f"{names[arm]} {done}")
+    return notes
+
+
+def xlimit(arms: dict[str, dict[int, pd.DataFrame]], epochs: int, final: bool) -> tuple[int, int]:
+    """The whole run when final; interim, the epochs done so far (with a margin)."""
+    done = max(len(t) for by_seed in arms.values() for t in by_seed.values())
+    return (0, epochs if final else min(epochs, math.ceil(done * 1.1) + 1))
+
+
+def save_figure(fig, path: Path, caption: str) -> Path:
+    fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=7.5, wrap=True)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def figures(out: Path) -> list[Path]:
+    """The pre-registered descriptive curves (PREREGISTRATION.md section 4), drawn interim too:
+    per arm each seed's curve and the mean over seeds (n = 4 or 8: no band)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    found = {a: runs(HERE / folder) for a, folder in ARMS.items() if (HERE / folder).is_dir()}
+    if found:
+        arms = {a: {seed_of(n): t.assign(m=(t.entropy_c0 + t.entropy_c1) / 2)
+                    for n, (_, t) in rs.items()} for a, rs in found.items()}  # fmt: skip
+        infos = [info for rs in found.values() for info, _ in rs.values()]
+        bound = infos[0]["log_free_area"][0]
+        final = all(i["status"] == "finished" for i in infos)
+        panels = (("m", "(clockwise + counterclockwise) / 2"),
+                  ("entropy_c0", "configuration 0: clockwise"),
+                  ("entropy_c1", "configuration 1: counterclockwise"))  # fmt: skip
+        fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), sharey=True)
+        for ax, (column, title) in zip(axes, panels, strict=True):
+            notes = draw_arms(ax, arms, column, NAMES, COLOURS)
+            ax.axhline(bound, label=f"log(free area) = {bound:.2f} nats", **BOUND)
+            ax.set(title=title, xlabel="epoch", xlim=xlimit(arms, EPOCHS, final))
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel("kNN entropy (nats, k = 30)")
+        axes[0].legend(loc="lower right", fontsize=8)
+        fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({'final' if final else 'INTERIM'}; "
+                     f"epochs done of {EPOCHS}: {', '.join(notes)})")  # fmt: skip
+        written.append(save_figure(fig, out / "corridor_interim.png",
+            "Thick: mean over seeds, over the epochs every seed of the arm has; thin: each seed. "
+            "No interval drawn. Faithful rules (env.edge=slide, algo.backtracking=reference), "
+            "N = 100 x 400 per epoch, commit a95e183. Descriptive (PREREGISTRATION.md section 4): "
+            "the answer is the table in RESULTS.md."))  # fmt: skip
+        plt.close(fig)
+    folder = HERE / "multigrid"
+    if folder.is_dir():
+        rs = runs(folder)
+        by = {"alphamepol": {}, "hmepol": {}}
+        for name, (info, table) in rs.items():
+            by[info["algo"]][seed_of(name)] = table
+        info = next(iter(rs.values()))[0]
+        final = all(i["status"] == "finished" for i, _ in rs.values())
+        epochs = info["epochs"]
+        panels = (("entropy", "average over the drawn configurations",
+                   float(np.mean(info["log_free_area"]))),
+                  ("entropy_c0", f"configuration 0: {info['config_names'][0]}",
+                   info["log_free_area"][0]))  # fmt: skip
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+        for ax, (column, title, bound) in zip(axes, panels, strict=True):
+            notes = draw_arms(ax, by, column, MULTIGRID_NAMES, COLOURS)
+            ax.axhline(bound, label=f"log(free area) = {bound:.2f} nats", **BOUND)
+            ax.set(title=title, xlabel="epoch", xlim=xlimit(by, epochs, final))
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel("kNN entropy (nats, k = 30)")
+        axes[0].legend(loc="lower right", fontsize=8)
+        state = "final" if final else "INTERIM"
+        fig.suptitle(f"Decisive experiment, multigrid quick preset ({state}; epochs done of "
+                     f"{epochs}: {', '.join(notes)})")  # fmt: skip
+        written.append(save_figure(fig, out / "multigrid_interim.png",
+            "Thick: mean over seeds; thin: each seed; no interval drawn. Configuration 0: only the "
+            "epochs that drew it (the mean is over the seeds that did). Faithful rules, "
+            "40 trajectories x 400 steps per epoch, commit a95e183."))  # fmt: skip
+        plt.close(fig)
+    return written
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path)
     parser.add_argument("--results", type=Path, help="a file whose tables between the markers "
                         f"{BEGIN} and {END} are replaced")  # fmt: skip
+    parser.add_argument("--figures", type=Path, help="a folder for the curves per arm "
+                        "(corridor_interim.png, multigrid_interim.png)")  # fmt: skip
     args = parser.parse_args(argv)
     lines: list[str] = []
     corridor(lines)
@@ -180,6 +290,8 @@ def main(argv: list[str] | None = None) -> None:
         head, rest = old.split(BEGIN, 1)
         tail = rest.split(END, 1)[1]
         args.results.write_text(f"{head}{BEGIN}\n{text}{END}{tail}")
+    if args.figures:
+        figures(args.figures)
     print(text)
 
 
