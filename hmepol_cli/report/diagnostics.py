@@ -66,10 +66,14 @@ def config_changes(run: Run) -> pd.DataFrame:
 def entropy_changes(run: Run) -> pd.DataFrame:
     """Per epoch from DROP_FROM on: the largest fall of any configuration's entropy since the
     epoch before (``change``, nats, negative = a fall) and the configuration it fell in."""
-    change = config_changes(run).add_prefix("entropy_c")
+    change = config_changes(run)
     worst = change.min(axis=1)
-    config = change.idxmin(axis=1).where(worst.notna())
-    return pd.DataFrame({"change": worst, "config": config.str.removeprefix("entropy_c")})
+    # An epoch may have no change at all (multigrid samples some configurations an epoch):
+    # idxmin refuses an all-NaN row, so it looks only at the rows that have one.
+    config = pd.Series(pd.NA, index=change.index, dtype="string")
+    some = worst.notna()
+    config[some] = change[some].idxmin(axis=1).astype(str)
+    return pd.DataFrame({"change": worst, "config": config})
 
 
 def diagnosed(groups: list[Group]) -> list[Group]:
