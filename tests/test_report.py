@@ -855,7 +855,7 @@ def test_every_group_has_a_colour_of_its_own():
     from types import SimpleNamespace
 
     from hmepol_cli.plots import algo_colour
-    from hmepol_cli.report.figures import series_styles
+    from hmepol_cli.report.series import series_styles
 
     groups = [
         SimpleNamespace(algo="mepol", label="Mepol"),
@@ -987,15 +987,15 @@ def test_drops_and_the_kl_ratio_of_the_update_before_them_by_hand(tmp_path):
 
 
 def test_a_fine_tuning_legend_names_the_pre_training_epoch_it_started_from():
-    from hmepol_cli.report.figures import _init_epochs
+    from hmepol_cli.report.captions import init_epochs_text
 
     frame = pd.DataFrame(
         {"algo_init": ["hmepol", "hmepol", "mepol", "scratch"], "init_epoch": [75, 75, 100, None]}
     )
-    assert _init_epochs(frame, "hmepol") == ", from epoch 75"
-    assert _init_epochs(frame, "mepol") == ", from epoch 100"
-    assert _init_epochs(frame, "scratch") == ""
-    assert _init_epochs(frame.drop(columns="init_epoch"), "hmepol") == ""  # older runs
+    assert init_epochs_text(frame, "hmepol") == ", from epoch 75"
+    assert init_epochs_text(frame, "mepol") == ", from epoch 100"
+    assert init_epochs_text(frame, "scratch") == ""
+    assert init_epochs_text(frame.drop(columns="init_epoch"), "hmepol") == ""  # older runs
 
 
 def test_a_block_label_too_long_for_the_figure_gets_smaller_type():

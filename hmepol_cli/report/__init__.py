@@ -2,8 +2,9 @@
 
 Data path: runs.py (find, load, merge copies, group) -> stats.py (means and intervals over the
 unit of independence, seeds needed), aggregates.py (rliable, bootstrapped over runs) ->
-figures.py / plots.py (PNG) -> summary.py (CSV, Markdown; resolution.py's notes) -> html.py
-(index.html) -> manifest.py (report.json). docs/statistics.md gives every formula.
+frames.py (the numbers a figure draws) -> figures.py / series.py / plots.py (PNG; the words in
+captions.py) -> summary.py (CSV, Markdown; resolution.py's notes) -> html.py (index.html) ->
+manifest.py (report.json). docs/statistics.md gives every formula.
 """
 
 from __future__ import annotations
