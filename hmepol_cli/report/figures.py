@@ -21,6 +21,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
+from hmepol_cli.envs import World, make_world
 from hmepol_cli.plots import (
     BOUND_COLOUR,
     TRAJECTORIES,
@@ -79,13 +80,14 @@ class FigureRecord:
 
 
 # ------------------------------------------------------------------------------------- helpers
-def load_world(env: str, wind: float):
-    """The world's geometry (walls, arena), or None when this env cannot be built here."""
+def load_world(env: str, wind: float) -> World | None:
+    """The world's geometry (walls, arena), or None when this env cannot be built here: a name
+    make_world does not know (a Gymnasium world, named by its id; a world of another checkout)
+    or a setting the world refuses. Both are a ValueError (ConfigError is one); the maps are then
+    drawn without walls. Any other error is a bug and propagates."""
     try:
-        from hmepol_cli.envs import make_world
-
         return make_world(SimpleNamespace(name=env, wind=wind if np.isfinite(wind) else 0.0))
-    except Exception:
+    except ValueError:
         return None
 
 
