@@ -22,7 +22,8 @@ import pytest
 from hmepol_cli.cli import main
 from hmepol_cli.errors import ConfigError, UserError
 from hmepol_cli.report import SkippedRunWarning, run_report
-from hmepol_cli.report.runs import discover_runs, drop_duplicate_seeds, group_runs, varying_keys
+from hmepol_cli.report.loading import discover_runs
+from hmepol_cli.report.runs import drop_duplicate_seeds, group_runs, varying_keys
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
 from hmepol_cli.report.summary import difference_table, final_entropy_table
 
