@@ -14,7 +14,8 @@ from hmepol_cli.report.aggregates import (
     mean_interval,
     performance_profile,
 )
-from hmepol_cli.report.runs import discover_runs, group_runs
+from hmepol_cli.report.loading import discover_runs
+from hmepol_cli.report.runs import group_runs
 from hmepol_cli.report.summary import difference_table, final_entropy_table
 from tests.test_report import write_run
 

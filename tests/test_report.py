@@ -20,9 +20,10 @@ import pandas as pd
 import pytest
 
 from hmepol_cli.cli import main
-from hmepol_cli.errors import UserError
+from hmepol_cli.errors import ConfigError, UserError
 from hmepol_cli.report import SkippedRunWarning, run_report
-from hmepol_cli.report.runs import discover_runs, drop_duplicate_seeds, group_runs, varying_keys
+from hmepol_cli.report.loading import discover_runs
+from hmepol_cli.report.runs import drop_duplicate_seeds, group_runs, varying_keys
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
 from hmepol_cli.report.summary import difference_table, final_entropy_table
 
@@ -742,6 +743,68 @@ def test_save_run_plots_writes_heatmap_and_trajectories(tmp_path):
     assert all(p.stat().st_size > 1000 for p in paths)
 
 
+def _slope_world_raising(monkeypatch, error: Exception) -> None:
+    from hmepol_cli.envs.slope import SlopeWorld
+
+    def from_config(cls, env_cfg):
+        raise error
+
+    monkeypatch.setattr(SlopeWorld, "from_config", classmethod(from_config))
+
+
+def _maps_drawn_with(monkeypatch) -> list[object]:
+    """The world each map (heatmaps, trajectories) of the report is drawn on, in order."""
+    from hmepol_cli.report import figures
+
+    worlds: list[object] = []
+
+    def recording(draw):
+        def record(fig, world, *args, **kwargs):
+            worlds.append(world)
+            return draw(fig, world, *args, **kwargs)
+
+        return record
+
+    monkeypatch.setattr(figures, "heatmap_grid", recording(figures.heatmap_grid))
+    monkeypatch.setattr(figures, "trajectory_grid", recording(figures.trajectory_grid))
+    return worlds
+
+
+@pytest.mark.parametrize(
+    ("env", "wind", "refusal"),
+    [
+        ("nowhere", 0.4, None),  # a name make_world does not know (a Gymnasium id, another tree)
+        ("corridor", -1.0, None),  # a setting the world refuses (ValueError)
+        ("slope", 0.4, ConfigError("env.edge='x'; choose one of ...")),  # its constructor's
+    ],
+)
+def test_a_run_whose_world_cannot_be_built_is_reported_with_maps_without_walls(
+    tmp_path, monkeypatch, capsys, env, wind, refusal
+):
+    if refusal is not None:
+        _slope_world_raising(monkeypatch, refusal)
+    worlds = _maps_drawn_with(monkeypatch)
+    for seed in (0, 1):
+        write_run(tmp_path / "runs", env=env, wind=wind, seed=seed)
+    index = run_report(tmp_path / "runs", tmp_path / "report")
+    assert worlds and all(world is None for world in worlds)  # heatmaps, trajectories: no walls
+    assert "2 runs used (1 groups), 0 skipped" in capsys.readouterr().out
+    page = index.read_text()
+    for name in ("heatmaps", "trajectories_mepol", "entropy_epochs", "final_entropy_bars"):
+        assert (tmp_path / "report" / "figures" / f"{env}_{name}.png").is_file()
+        assert f'src="figures/{env}_{name}.png"' in page
+
+
+@pytest.mark.parametrize("error", [TypeError("bug"), RuntimeError("bug"), KeyError("bug")])
+def test_an_unexpected_error_building_a_world_is_not_swallowed(tmp_path, monkeypatch, error):
+    # Only a world that cannot be built (ValueError, ConfigError) makes maps without walls.
+    _slope_world_raising(monkeypatch, error)
+    for seed in (0, 1):
+        write_run(tmp_path / "runs", seed=seed)
+    with pytest.raises(type(error), match="bug"):
+        run_report(tmp_path / "runs", tmp_path / "report")
+
+
 @pytest.fixture()
 def drawn_figures(monkeypatch) -> dict[str, object]:
     """The figures the report saves, by file name, to look at their axes."""
@@ -855,7 +918,7 @@ def test_every_group_has_a_colour_of_its_own():
     from types import SimpleNamespace
 
     from hmepol_cli.plots import algo_colour
-    from hmepol_cli.report.figures import series_styles
+    from hmepol_cli.report.series import series_styles
 
     groups = [
         SimpleNamespace(algo="mepol", label="Mepol"),
@@ -987,15 +1050,15 @@ def test_drops_and_the_kl_ratio_of_the_update_before_them_by_hand(tmp_path):
 
 
 def test_a_fine_tuning_legend_names_the_pre_training_epoch_it_started_from():
-    from hmepol_cli.report.figures import _init_epochs
+    from hmepol_cli.report.captions import init_epochs_text
 
     frame = pd.DataFrame(
         {"algo_init": ["hmepol", "hmepol", "mepol", "scratch"], "init_epoch": [75, 75, 100, None]}
     )
-    assert _init_epochs(frame, "hmepol") == ", from epoch 75"
-    assert _init_epochs(frame, "mepol") == ", from epoch 100"
-    assert _init_epochs(frame, "scratch") == ""
-    assert _init_epochs(frame.drop(columns="init_epoch"), "hmepol") == ""  # older runs
+    assert init_epochs_text(frame, "hmepol") == ", from epoch 75"
+    assert init_epochs_text(frame, "mepol") == ", from epoch 100"
+    assert init_epochs_text(frame, "scratch") == ""
+    assert init_epochs_text(frame.drop(columns="init_epoch"), "hmepol") == ""  # older runs
 
 
 def test_a_block_label_too_long_for_the_figure_gets_smaller_type():

@@ -1,8 +1,9 @@
 """``hmepol report``: aggregate finished runs into the thesis figures, tables and one HTML page.
 
-Data path: runs.py (find, load, merge copies, group) -> stats.py (means and intervals over the
-unit of independence, seeds needed), aggregates.py (rliable, bootstrapped over runs) ->
-figures.py / plots.py (PNG) -> summary.py (CSV, Markdown; resolution.py's notes) -> html.py
+Data path: loading.py (find, load) -> runs.py (merge copies, group) -> stats.py (means and
+intervals over the unit of independence, seeds needed), aggregates.py (rliable, bootstrapped over
+runs) -> frames.py (the numbers a figure draws) -> figures.py / series.py / plots.py (PNG; the
+words in captions.py) -> summary.py (CSV, Markdown; resolution.py's notes) -> html.py
 (index.html) -> manifest.py (report.json). docs/statistics.md gives every formula.
 """
 
@@ -15,10 +16,10 @@ from hmepol_cli.errors import UserError
 from hmepol_cli.plots import save_run_plots
 from hmepol_cli.report.figures import make_figures
 from hmepol_cli.report.html import write_index
+from hmepol_cli.report.loading import discover_runs
 from hmepol_cli.report.manifest import previous_report_files, write_manifest
 from hmepol_cli.report.runs import (
     SkippedRunWarning,
-    discover_runs,
     drop_duplicate_seeds,
     group_runs,
     merge_identical_runs,

@@ -22,7 +22,7 @@ from hmepol_cli.report.diagnostics import (
     drop_table,
     pooled_drops,
 )
-from hmepol_cli.report.figures import average_bound, finetune_curves, finetune_frame
+from hmepol_cli.report.frames import config_bound, finetune_curves, finetune_frame
 from hmepol_cli.report.resolution import (
     DETECTABLE_COLUMN,
     PLANNED_DIFFERENCE,
@@ -78,7 +78,7 @@ def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
         run = group.first
         for config, name in _config_rows(group):
             ci = mean_ci(list(group.finals(config).values()))
-            bound = average_bound(run) if config is None else run.log_free_area[config]
+            bound = config_bound(run, config)
             scores = group.scores(config)
             middle, mean = iqm_interval(scores), mean_interval(scores)
             rows.append(
