@@ -104,7 +104,8 @@ def test_summary_and_differences_hold_the_aggregates(tmp_path):
             )  # fmt: skip
     groups = group_runs(discover_runs(tmp_path)[0])
     summary = final_entropy_table(groups).set_index(["group", "config"])
-    scores = np.concatenate([np.array(finals["mepol"]) + 0.1, np.array(finals["mepol"]) - 0.1])
+    # The average row is over each seed's average entropy (final), one score per seed.
+    scores = np.array(finals["mepol"])
     assert summary.loc[("Mepol", "average"), "iqm_nats"] == pytest.approx(iqm(scores))
     assert summary.loc[("Mepol", "0: south"), "iqm_nats"] == pytest.approx(
         iqm(np.array(finals["mepol"]) + 0.1)
@@ -119,3 +120,18 @@ def test_summary_and_differences_hold_the_aggregates(tmp_path):
     assert diff.loc["average", "p_improvement"] == pytest.approx(
         np.mean(hm[:, None] > me[None, :])  # both configurations shift both groups alike
     )
+
+
+def test_the_average_row_brackets_its_own_mean_when_configurations_weigh_unequally(tmp_path):
+    """Slope's configurations weigh 0.8 and 0.2: a seed's average entropy (final) is not the
+    equal-weight mean of its configurations' (here final + 1 and final - 3, whose equal mean is
+    final - 1). The average row's bootstrap must estimate what mean_nats is, the mean of the
+    seeds' averages, and hold it inside its interval."""
+    values = [1.0, 1.2, 1.1, 1.45, 0.9]
+    for seed, value in enumerate(values):
+        write_run(tmp_path, seed=seed, final=value, epochs=10, config_finals=(value + 1, value - 3))
+    groups = group_runs(discover_runs(tmp_path)[0])
+    row = final_entropy_table(groups).set_index("config").loc["average"]
+    assert row["mean_nats"] == pytest.approx(np.mean(values))
+    assert row["mean_boot95_low"] <= row["mean_nats"] <= row["mean_boot95_high"]
+    assert row["iqm_nats"] == pytest.approx(iqm(np.array(values)))
