@@ -16,7 +16,7 @@ from hmepol_cli.report.aggregates import (
 )
 from hmepol_cli.report.loading import discover_runs
 from hmepol_cli.report.runs import group_runs
-from hmepol_cli.report.summary import difference_table, final_entropy_table
+from hmepol_cli.report.summary import difference_table, final_entropy_table, window_note
 from tests.test_report import write_run
 
 
@@ -135,3 +135,29 @@ def test_the_average_row_brackets_its_own_mean_when_configurations_weigh_unequal
     assert row["mean_nats"] == pytest.approx(np.mean(values))
     assert row["mean_boot95_low"] <= row["mean_nats"] <= row["mean_boot95_high"]
     assert row["iqm_nats"] == pytest.approx(iqm(np.array(values)))
+
+
+def test_differences_say_when_they_compare_finals_taken_at_different_epochs(tmp_path):
+    """Mepol ran 20 epochs (its final: the mean over epochs 18-19), HMepol 10 (epoch 9 alone):
+    the difference compares two stages of training, and the table and its notice say so."""
+    for seed in (0, 1, 2):
+        write_run(tmp_path, algo="mepol", seed=seed, epochs=20)
+        write_run(tmp_path, algo="hmepol", seed=seed, epochs=10)
+    groups = group_runs(discover_runs(tmp_path)[0])
+    summary = final_entropy_table(groups).set_index(["group", "config"])
+    assert summary.loc[("Mepol", "average"), "final_epochs"] == "18-19"
+    assert summary.loc[("HMepol", "average"), "final_epochs"] == "9-9"
+    diff = difference_table(groups)
+    pairs = set(zip(diff["final_epochs_a"], diff["final_epochs_b"], strict=True))
+    assert pairs == {("18-19", "9-9")}
+    note = window_note("differences", diff)
+    assert note.startswith(f"{len(diff)} of {len(diff)} rows compare finals taken at different")
+    assert "18-19 against 9-9" in note
+
+
+def test_differences_of_runs_of_one_length_carry_no_window_notice(tmp_path):
+    for seed in (0, 1, 2):
+        write_run(tmp_path, algo="mepol", seed=seed, epochs=20)
+        write_run(tmp_path, algo="hmepol", seed=seed, epochs=20)
+    groups = group_runs(discover_runs(tmp_path)[0])
+    assert window_note("differences", difference_table(groups)) == ""

@@ -20,7 +20,7 @@ import pandas as pd
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
 from hmepol_cli.finetune.task import GoalTask, RewardTask
-from hmepol_cli.report.stats import final_value
+from hmepol_cli.report.stats import FINAL_FRACTION, final_value
 from hmepol_cli.run import CHECKPOINT
 
 # Config keys that say how a run was executed, not what was run: never a reason to split groups.
@@ -200,6 +200,16 @@ class Run:
         """Mean entropy over the last 10% of epochs (nats): average (None) or one configuration."""
         return final_value(self.entropy_curve(config).to_numpy())
 
+    def final_epochs(self, config: int | None = None) -> str:
+        """The epochs :meth:`final_entropy` averages, 'first-last' ('' when there are none)."""
+        curve = self.entropy_curve(config)
+        curve = curve[np.isfinite(curve.to_numpy())]  # the values final_value keeps
+        if curve.empty:
+            return ""
+        k = max(1, math.ceil(FINAL_FRACTION * len(curve)))
+        window = curve.index[-k:]
+        return f"{int(window[0])}-{int(window[-1])}"
+
     @property
     def completeness(self) -> tuple[int, int, float]:
         """How far the run got, to choose between two copies of one seed: epochs done (run.json),
@@ -256,6 +266,10 @@ class Group:
     def finals(self, config: int | None = None) -> dict[int, float]:
         """Final entropy of every seed, {seed: nats}."""
         return {r.seed: r.final_entropy(config) for r in self.runs}
+
+    def final_epochs(self, config: int | None = None) -> str:
+        """The epochs its seeds' finals average: one 'first-last', or each distinct one."""
+        return ", ".join(dict.fromkeys(r.final_epochs(config) for r in self.runs))
 
     def scores(self, config: int | None = None) -> np.ndarray:
         """The score matrix of rliable's aggregates, (n_seeds, n_configurations) in seed order:

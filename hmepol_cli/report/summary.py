@@ -99,6 +99,7 @@ def final_entropy_table(groups: list[Group]) -> pd.DataFrame:
                     "config": name,
                     "n_seeds": ci.n,
                     "seeds": " ".join(map(str, group.seeds)),
+                    "final_epochs": group.final_epochs(config),
                     "mean_nats": ci.mean,
                     "ci95_low": ci.low,
                     "ci95_high": ci.high,
@@ -145,6 +146,8 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
                         "method": d.method,
                         "n_a": d.n_a,
                         "n_b": d.n_b,
+                        "final_epochs_a": a.final_epochs(config),
+                        "final_epochs_b": b.final_epochs(config),
                         "p_improvement": p.estimate,
                         "p_boot95_low": p.low,
                         "p_boot95_high": p.high,
@@ -250,7 +253,8 @@ def table_caption(name: str) -> str:
     planned = ", ".join(f"±{h:g}" for h in PLANNED_HALF_WIDTHS)
     captions = {
         "summary": (
-            "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs. The "
+            "Final entropy: per seed, the mean entropy (nats) over the last 10% of epochs "
+            "(`final_epochs`: which; more than one where seeds ran different lengths). The "
             "unit is the seed (one pre-training run). `mean_nats`, `ci95_*`: the mean over seeds "
             "with its Student-t 95% interval (n/a with one seed). `iqm_nats`, `*_boot95_*`: "
             "rliable's interquartile mean and mean (Agarwal et al., 2021) with 95% intervals by "
@@ -259,7 +263,8 @@ def table_caption(name: str) -> str:
         ),
         "differences": (
             "Final entropy of the later algorithm minus the earlier one (order Mepol, α-Mepol, "
-            "HMepol); the unit is the seed. 95% CI: paired t-interval on the per-seed "
+            "HMepol), each over its last 10% of epochs (`final_epochs_a`, `_b`: which); the unit "
+            "is the seed. 95% CI: paired t-interval on the per-seed "
             "differences when both groups ran the same seeds, Welch's t-interval "
             "(Welch-Satterthwaite degrees of freedom) otherwise (column `method`). "
             "`p_improvement`: the probability that a run of the later algorithm scores higher "
@@ -301,20 +306,34 @@ def table_caption(name: str) -> str:
     return captions[name]
 
 
+def window_note(name: str, table: pd.DataFrame) -> str:
+    """A warning when rows of the differences compare finals taken at different epochs (a
+    group that ran fewer epochs against a longer one): '' when none do."""
+    if name != "differences" or table.empty:
+        return ""
+    apart = table[table["final_epochs_a"] != table["final_epochs_b"]]
+    if apart.empty:
+        return ""
+    pairs = sorted(set(zip(apart["final_epochs_a"], apart["final_epochs_b"], strict=True)))
+    shown = "; ".join(f"{a} against {b}" for a, b in pairs[:3])
+    shown += "; ..." if len(pairs) > 3 else ""
+    return (
+        f"{len(apart)} of {len(table)} rows compare finals taken at different epochs ({shown}): "
+        "they compare runs at different stages of training, not the algorithms at one."
+    )
+
+
 def table_sections(tables: dict[str, pd.DataFrame]) -> list[tuple[str, str, str, str, str]]:
-    """(name, title, caption, fewer-units notice, resolution line) of each table to show: the
-    entropy tables always, the others when they have rows."""
+    """(name, title, caption, notice (too few units, finals at different epochs), resolution
+    line) of each table to show: the entropy tables always, the others when they have rows."""
     shown = [n for n in TABLE_TITLES if n in ("summary", "differences") or not tables[n].empty]
-    return [
-        (
-            name,
-            TABLE_TITLES[name],
-            table_caption(name),
-            few_units_note(name, tables[name]),
-            resolution_line(name, tables[name]),
-        )
-        for name in shown
-    ]
+    sections = []
+    for name in shown:
+        notes = (few_units_note(name, tables[name]), window_note(name, tables[name]))
+        notice = " ".join(n for n in notes if n)
+        line = resolution_line(name, tables[name])
+        sections.append((name, TABLE_TITLES[name], table_caption(name), notice, line))
+    return sections
 
 
 def write_summary(
