@@ -196,6 +196,18 @@ def xlimit(arms: dict[str, dict[int, pd.DataFrame]], epochs: int, final: bool) -
     return (0, epochs if final else min(epochs, math.ceil(done * 1.1) + 1))
 
 
+def draw_panels(axes, panels, arms, names: dict[str, str], epochs: int, final: bool) -> list[str]:
+    """One panel per (column, title, bound line); -> the arms' notes (epochs done)."""
+    for ax, (column, title, bound) in zip(axes, panels, strict=True):
+        notes = draw_arms(ax, arms, column, names, COLOURS)
+        ax.axhline(bound, label=f"log(free area) = {bound:.2f} nats", **BOUND)
+        ax.set(title=title, xlabel="epoch", xlim=xlimit(arms, epochs, final))
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("kNN entropy (nats, k = 30)")
+    axes[0].legend(loc="lower right", fontsize=8)
+    return notes
+
+
 def save_figure(fig, path: Path, caption: str) -> Path:
     fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=7.5, wrap=True)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
@@ -224,13 +236,8 @@ def figures(out: Path) -> list[Path]:
                   ("entropy_c0", "configuration 0: clockwise"),
                   ("entropy_c1", "configuration 1: counterclockwise"))  # fmt: skip
         fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), sharey=True)
-        for ax, (column, title) in zip(axes, panels, strict=True):
-            notes = draw_arms(ax, arms, column, NAMES, COLOURS)
-            ax.axhline(bound, label=f"log(free area) = {bound:.2f} nats", **BOUND)
-            ax.set(title=title, xlabel="epoch", xlim=xlimit(arms, EPOCHS, final))
-            ax.grid(alpha=0.3)
-        axes[0].set_ylabel("kNN entropy (nats, k = 30)")
-        axes[0].legend(loc="lower right", fontsize=8)
+        panels = [(column, title, bound) for column, title in panels]
+        notes = draw_panels(axes, panels, arms, NAMES, EPOCHS, final)
         fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({'final' if final else 'INTERIM'}; "
                      f"epochs done of {EPOCHS}: {', '.join(notes)})")  # fmt: skip
         written.append(save_figure(fig, out / "corridor_interim.png",
@@ -253,13 +260,7 @@ def figures(out: Path) -> list[Path]:
                   ("entropy_c0", f"configuration 0: {info['config_names'][0]}",
                    info["log_free_area"][0]))  # fmt: skip
         fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
-        for ax, (column, title, bound) in zip(axes, panels, strict=True):
-            notes = draw_arms(ax, by, column, MULTIGRID_NAMES, COLOURS)
-            ax.axhline(bound, label=f"log(free area) = {bound:.2f} nats", **BOUND)
-            ax.set(title=title, xlabel="epoch", xlim=xlimit(by, epochs, final))
-            ax.grid(alpha=0.3)
-        axes[0].set_ylabel("kNN entropy (nats, k = 30)")
-        axes[0].legend(loc="lower right", fontsize=8)
+        notes = draw_panels(axes, panels, by, MULTIGRID_NAMES, epochs, final)
         state = "final" if final else "INTERIM"
         fig.suptitle(f"Decisive experiment, multigrid quick preset ({state}; epochs done of "
                      f"{epochs}: {', '.join(notes)})")  # fmt: skip
