@@ -235,6 +235,15 @@ def register_configs() -> None:
 DEVICES = ("cpu", "cuda", "auto")
 NEIGHBOURS = ("auto", "kdtree", "torch")
 BACKTRACKING = ("reference", "first_step")
+
+
+def backtracking_rule(algo_cfg) -> str:
+    """The backtracking rule of an ``algo`` config entry; a run started before
+    ``algo.backtracking`` existed ran with ``first_step`` and continues with it."""
+    value = algo_cfg.get("backtracking") if hasattr(algo_cfg, "get") else None
+    return "first_step" if value is None else str(value)
+
+
 RESTORE = ("parameters", "parameters_and_adam")
 
 

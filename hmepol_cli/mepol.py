@@ -42,7 +42,7 @@ import torch
 from omegaconf import DictConfig
 
 from hmepol_cli import estimators
-from hmepol_cli.config import parse_bptt
+from hmepol_cli.config import backtracking_rule, parse_bptt
 from hmepol_cli.envs import World
 from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
 from hmepol_cli.precision import PRECISIONS, Precision, precision_of
@@ -77,14 +77,13 @@ class OffPolicySettings:
         """The settings of ``cfg``; ``member_cfgs`` (default: [cfg]) the population's members,
         which differ only in member-scalar keys."""
         a = cfg.algo
-        # Runs started before the reference's backtracking was the default keep their own rule.
         return cls(
             trajectories=int(a.trajectories),
             horizon=int(a.horizon),
             batch_size=int(a.batch_size),
             estimator=estimators.make_estimator(cfg.estimator),
             members=tuple(MemberSettings.from_config(c) for c in (member_cfgs or [cfg])),
-            backtracking=str(a.get("backtracking", "first_step")),
+            backtracking=backtracking_rule(a),  # an older run keeps its own rule
             backtrack_tries=int(a.lr_backtrack_tries),
             backtrack_factor=float(a.lr_backtrack_factor),
             restore=str(a.get("backtrack_restore", "parameters_and_adam")),

@@ -920,12 +920,17 @@ def test_every_group_has_a_colour_of_its_own():
     from hmepol_cli.plots import algo_colour
     from hmepol_cli.report.series import series_styles
 
+    def group(algo: str, label: str, **config) -> SimpleNamespace:
+        defaults = {"algo.adam_reset": None, "algo.trust_region": "gradient", "policy.bptt": "1"}
+        first = SimpleNamespace(wind=0.4, config={**defaults, **config})
+        return SimpleNamespace(algo=algo, label=label, env="slope", wind=0.4, first=first)
+
     groups = [
-        SimpleNamespace(algo="mepol", label="Mepol"),
-        SimpleNamespace(algo="hmepol", label="HMepol (algo.adam_reset=epoch)"),
-        SimpleNamespace(algo="hmepol", label="HMepol (algo.trust_region=exact)"),
-        SimpleNamespace(algo="hmepol", label="HMepol (bptt=full)"),
-        SimpleNamespace(algo="hmepol", label="HMepol"),
+        group("mepol", "Mepol"),
+        group("hmepol", "HMepol (algo.adam_reset=epoch)", **{"algo.adam_reset": "epoch"}),
+        group("hmepol", "HMepol (algo.trust_region=exact)", **{"algo.trust_region": "exact"}),
+        group("hmepol", "HMepol (bptt=full)", **{"policy.bptt": "full"}),
+        group("hmepol", "HMepol"),
     ]
     styles = series_styles(groups)
     assert len({s.colour for s in styles.values()}) == 5

@@ -53,9 +53,15 @@ def _seeds(n: int) -> str:
     return f"{n} seed{'s' if n != 1 else ''}"
 
 
-def median_of(n: int) -> str:
-    """Which seed of ``n`` a map shows."""
-    return "the only seed" if n == 1 else f"median of {n} seeds"
+def median_of(group: Group) -> str:
+    """Why a map shows the seed it does (:meth:`Group.representative`): the one whose final
+    average entropy is the median of the seeds with maps, the lower of the middle two for an
+    even count."""
+    n = sum(1 for r in group.runs if r.positions) or len(group.runs)
+    if n == 1:
+        return "the only seed"
+    which = "lower median" if n % 2 == 0 else "median"
+    return f"its final entropy is the {which} of {n}"
 
 
 def spread_title(groups: list[Group]) -> str:
@@ -169,13 +175,21 @@ def entropy_curves_caption(groups: list[Group], labels: Iterable[str], winds: li
     )
 
 
-def entropy_by_config_caption(groups: list[Group], labels: Iterable[str]) -> str:
+def entropy_by_config_caption(groups: list[Group], labels: Iterable[str], sampled: bool) -> str:
+    """``sampled``: some epochs of a configuration lack some seeds (configurations are drawn)."""
+    per_epoch = (
+        " Configurations are sampled each epoch, so an epoch's point is the mean over the seeds "
+        "that drew the configuration in it: n≤ in the legend is the group's seeds, the most a "
+        "point has."
+        if sampled
+        else ""
+    )
     return (
         f"State entropy (nats) per epoch computed only on the mini-batches drawn in each "
         f"configuration, for {' vs '.join(labels)}. Line: mean over seeds; {spread_text(groups)}; "
         "gaps are epochs where no seed drew that configuration, a dot an "
-        "epoch between gaps. Each panel has its own y-scale. Dashed: log(free area) of the "
-        "configuration."
+        f"epoch between gaps.{per_epoch} Each panel has its own y-scale. Dashed: log(free area) "
+        "of the configuration."
     )
 
 
@@ -213,28 +227,41 @@ def aggregates_caption(groups: list[Group]) -> str:
     )
 
 
-def diagnostics_caption(groups: list[Group]) -> str:
+def diagnostics_caption(groups: list[Group], without: list[str]) -> str:
+    """``without``: the groups (as the figure names them) with no diagnostics (steps.csv)."""
+    absent = (
+        f" {' and '.join(without)} {'has' if len(without) == 1 else 'have'} no steps.csv (run "
+        "without diagnostics=true), so no KL ratio: absent from the two panels on the left, "
+        "shown in the other two."
+        if without
+        else ""
+    )
     return (
         "Runs made with diagnostics=true. Top left: the exact KL of each epoch's accepted "
         "update (likelihoods recomputed over whole histories) over the one-step KL the "
-        "gradient's likelihoods give (eq. 2.8), per seed and their median; 1 for a "
-        f"Markovian policy. Top right: single-epoch falls of more than {DROP_NATS:g} nat in "
-        f"one configuration's entropy from epoch {DROP_FROM} on, per seed. Bottom left: "
-        "each epoch's largest fall against the KL ratio of the update before it. Bottom "
-        "right: the share of action components past the clip. drops.csv lists the drops "
-        f"and the median ratios before and away from them. Seeds: {seeds_text(groups)}."
+        "gradient's likelihoods give (eq. 2.8), per seed (thin) and their median (thick; n in "
+        "the legend); 1 for a Markovian policy. Top right: single-epoch falls of more than "
+        f"{DROP_NATS:g} nat in one configuration's entropy from epoch {DROP_FROM} on, per "
+        "seed. Bottom left: each epoch's lowest change of a configuration's entropy since the "
+        "epoch before (negative: a fall; dashed: the drop threshold) against the KL ratio of "
+        "the update before it. Bottom right: the share of action components past the clip. "
+        f"drops.csv lists the drops and the median ratios before and away from them.{absent} "
+        f"Seeds: {seeds_text(groups)}."
     )
 
 
 def heatmaps_caption(shown: list[tuple[Group, Run]], trajectories: int, steps: int) -> str:
     """``shown``: each group and the seed whose visitation is drawn."""
-    who = "; ".join(f"{g.label}: seed {run.seed} of {len(g.runs)}" for g, run in shown)
+    who = "; ".join(f"{g.label}: seed {run.seed} ({median_of(g)})" for g, run in shown)
     return (
         f"Log probability of state visitation (2-D histogram over the arena, one shared colour "
-        f"scale; white: never visited; grey: walls) of {trajectories} fresh trajectories of "
-        f"{steps} steps per configuration, collected with the final policy of one "
-        f"representative seed per algorithm (the seed with the median final entropy): {who}. "
-        "Red dashed box: the start area."
+        f"scale; grey: walls) of {trajectories} fresh trajectories of {steps} steps per "
+        "configuration, collected with the final policy of one seed per algorithm: the seed "
+        "whose final average entropy (per seed the mean over the last 10% of epochs) is the "
+        "median of its group's, the lower of the two middle ones for an even number of seeds, "
+        f"so that the map is a typical seed's and not the best's: {who}. White: bins that no "
+        "state of these trajectories fell in (probability 0, whose log is off the colour "
+        "scale), not bins the policy cannot reach. Red dashed box: the start area."
     )
 
 
@@ -255,15 +282,16 @@ def finetune_caption(part: pd.DataFrame, inits: list[str], runs: list[Run]) -> s
     who = "; ".join(f"{algo_label(i)}: {units_text(part, i)}" for i in inits)
     low, high = return_range(part)
     cut = (
-        f", cut to the return's range [{low:g}, {high:g}]"
-        if np.isfinite([low, high]).all()
-        else ""
+        f", cut to the return's range [{low:g}, {high:g}]" if np.isfinite([low, high]).all() else ""
     )
     return (
         "Average return per epoch of TRPO on a sparse goal-reaching task, per configuration, "
         "started from a pre-trained policy or from scratch. The unit of independence is the "
         "pre-training run (from scratch, the fine-tuning run): its targets and fine-tuning "
-        "seeds are nested in it. Line: mean over the units of each unit's mean curve; with "
-        f"fewer than {MIN_UNITS} units, thin lines: each unit's curve; from {MIN_UNITS} on, "
+        "seeds are nested in it; n in the legend counts these units: pre-training runs, and "
+        "for from scratch fine-tuning runs. Line: mean over the units of each unit's mean "
+        f"curve; with fewer than {MIN_UNITS} units, thin lines: each unit's own curve (a "
+        "pre-training run's, averaged over its targets and fine-tuning seeds; from scratch, "
+        f"a fine-tuning run's); from {MIN_UNITS} on, "
         f"band: Student-t 95% CI over the units{cut} ({who})." + finetune_scale(runs)
     )

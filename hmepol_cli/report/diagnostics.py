@@ -152,13 +152,14 @@ MARKERS = ("o", "^", "s", "D", "v", "P")
 def draw_diagnostics(groups: list[Group], styles: dict, title: str, path: Path) -> Path:
     """Four panels: the KL ratio over epochs, drops per seed, the fall of entropy against the
     ratio of the update before it, and the share of actions at the clip."""
-    from hmepol_cli.plots import category_labels, new_figure, save
+    from hmepol_cli.plots import new_figure, save
 
     table = drop_table(groups)
     fig = new_figure(12.0, 8.0)
     (ratio_ax, drops_ax), (scatter_ax, clip_ax) = fig.subplots(2, 2)
     for g, group in enumerate(groups):
-        colour, dashes = styles[group.label].colour, styles[group.label].linestyle
+        style = styles[group.label]
+        colour, dashes = style.colour, style.linestyle
         marker = MARKERS[g % len(MARKERS)]
         runs = [r for r in group.runs if has_steps(r)]
         ratios = pd.concat([kl_ratio(r).rename(r.seed) for r in runs], axis=1) if runs else None
@@ -166,36 +167,41 @@ def draw_diagnostics(groups: list[Group], styles: dict, title: str, path: Path) 
             for seed in ratios:
                 ratio_ax.plot(ratios.index, ratios[seed], color=colour, lw=0.5, alpha=0.35)
             median = ratios.median(axis=1)
-            ratio_ax.plot(median.index, median, color=colour, ls=dashes, lw=1.8, label=group.label)
+            ratio_ax.plot(
+                median.index, median, color=colour, ls=dashes, lw=1.8,
+                label=f"{style.label} (median of n={ratios.shape[1]})",
+            )  # fmt: skip
         counts = table[table["group"] == group.label]["drops"].to_numpy()
         jitter = np.linspace(-0.15, 0.15, len(counts)) if len(counts) > 1 else np.zeros(1)
-        drops_ax.scatter(g + jitter, counts, color=colour, marker=marker, s=30, zorder=3)
-        drops_ax.plot([g - 0.25, g + 0.25], [counts.mean()] * 2, color=colour, ls=dashes, lw=2)
+        # Groups down the y-axis, so that their names can be read at the legends' size.
+        drops_ax.scatter(counts, g + jitter, color=colour, marker=marker, s=30, zorder=3)
+        drops_ax.plot([counts.mean()] * 2, [g - 0.25, g + 0.25], color=colour, ls=dashes, lw=2)
         for run in runs:
             changes = entropy_changes(run)
             before = kl_ratio(run).reindex(changes.index - 1).to_numpy()
             scatter_ax.scatter(
                 before, changes["change"], color=colour, marker=marker, s=8, alpha=0.5, lw=0,
-                label=group.label if run is runs[0] else None,
+                label=style.label if run is runs[0] else None,
             )  # fmt: skip
         epochs, clip = _curves(group, "clip_share")
         if np.isfinite(clip).any():
             mean = np.nanmean(np.where(np.isfinite(clip), clip, np.nan), axis=0)
-            clip_ax.plot(epochs, mean, color=colour, ls=dashes, lw=1.5, label=group.label)
+            clip_ax.plot(epochs, mean, color=colour, ls=dashes, lw=1.5, label=style.label)
     ratio_ax.set_yscale("log")
     ratio_ax.axhline(1.0, color="0.3", lw=0.8, ls="--")
     ratio_ax.set_xlabel("epoch")
     ratio_ax.set_ylabel("exact KL / one-step KL (accepted update)")
-    ratio_ax.set_title("Exact against one-step KL (thin: seeds; thick: median)", fontsize=10)
-    width = drops_ax.get_position().width * fig.get_figwidth()
-    labels, size = category_labels([g.label for g in groups], width)
-    drops_ax.set_xticks(range(len(groups)), labels, fontsize=size)
-    drops_ax.set_ylabel(f"drops > {DROP_NATS:g} nat from epoch {DROP_FROM}")
+    ratio_ax.set_title("Exact against one-step KL (thin: each seed; thick: median)", fontsize=10)
+    names = [styles[g.label].label.replace(" (", "\n(") for g in groups]
+    drops_ax.set_yticks(range(len(groups)), names, fontsize=8)
+    drops_ax.set_ylim(len(groups) - 0.5, -0.5)
+    drops_ax.set_xlabel(f"drops > {DROP_NATS:g} nat from epoch {DROP_FROM}")
     drops_ax.set_title("Single-epoch drops per seed (dots; bar: mean)", fontsize=10)
-    scatter_ax.set_xscale("log")
+    if any(len(c.get_offsets()) for c in scatter_ax.collections):  # runs of under DROP_FROM
+        scatter_ax.set_xscale("log")
     scatter_ax.axhline(-DROP_NATS, color="0.3", lw=0.8, ls="--")
     scatter_ax.set_xlabel("KL ratio of the update before")
-    scatter_ax.set_ylabel("largest fall of a configuration's entropy (nats)")
+    scatter_ax.set_ylabel("lowest change of a configuration's entropy\n(nats; negative: a fall)")
     scatter_ax.set_title("Entropy change against the update before it", fontsize=10)
     clip_ax.set_xlabel("epoch")
     clip_ax.set_ylabel("share of action components past the clip")

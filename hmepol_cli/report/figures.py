@@ -42,7 +42,7 @@ from hmepol_cli.report.captions import (
     spread_title,
     wind_title,
 )
-from hmepol_cli.report.diagnostics import diagnosed, draw_diagnostics
+from hmepol_cli.report.diagnostics import diagnosed, draw_diagnostics, has_steps
 from hmepol_cli.report.frames import (
     at_wind,
     average_bound,
@@ -55,6 +55,7 @@ from hmepol_cli.report.frames import (
     wind_finals,
     winds_of,
 )
+from hmepol_cli.report.rules import old_rules, old_rules_text
 from hmepol_cli.report.runs import Group, Run, algo_label, format_wind
 from hmepol_cli.report.series import (
     Style,
@@ -106,12 +107,44 @@ def wind_tag(wind: float, several: bool) -> str:
     return f"_wind{format_wind(wind)}" if several else ""
 
 
-def draw_curve(ax, group: Group, style: Style, config: int | None) -> None:
+def rules_title(groups: list[Group]) -> str:
+    """A title's second line naming the old rules, where every group ran with the same ones."""
+    made = {tuple(old_rules(g).items()) for g in groups}
+    if made == {()}:
+        return ""
+    if len(made) == 1:
+        return (
+            "\nmade with the old rules (" + ", ".join(f"{k}={v}" for k, v in next(iter(made))) + ")"
+        )
+    return "\nsome groups made with the old rules (caption)"
+
+
+def shown_labels(styles: dict[str, Style]) -> list[str]:
+    """The series' names as the legends show them."""
+    return [style.label for style in styles.values()]
+
+
+def draw_curve(ax, group: Group, style: Style, config: int | None, sampled: bool = False) -> None:
+    """``sampled``: the group's seeds do not all draw each configuration every epoch, so a
+    point's n is at most the group's."""
     epochs, curves = group.curves(config)
     if curves.size == 0:
         return
-    label = f"{style.label} ({n_text(len(group.runs))})"
+    n = len(group.runs)
+    label = f"{style.label} ({n_text(n)})"
+    if sampled:
+        label = f"{style.label} (n≤{n} per epoch{', each seed drawn' if n < MIN_UNITS else ''})"
     plot_units(ax, epochs, curves, style.colour, style.linestyle, label)
+
+
+def sampled_configurations(group: Group) -> bool:
+    """Whether some epoch of some configuration's curve lacks one of the group's seeds (the
+    multigrid samples configurations each epoch)."""
+    for config in range(group.n_configurations):
+        _, curves = group.curves(config)
+        if curves.size and (np.isfinite(curves).sum(axis=0) < len(group.runs)).any():
+            return True
+    return False
 
 
 # ------------------------------------------------------------------------- entropy per epoch
@@ -137,10 +170,10 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
     fit_to_lines(axes)  # one scale for every wind, as the panels share their y-axis
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
-    fig.suptitle(f"{env}: average entropy per epoch\n{spread_title(groups)}")
+    fig.suptitle(f"{env}: average entropy per epoch\n{spread_title(groups)}{rules_title(groups)}")
     figure_legend(fig, axes)
     path = save(fig, out_dir / f"{env}_entropy_epochs.png")
-    caption = captions.entropy_curves_caption(groups, styles, winds)
+    caption = captions.entropy_curves_caption(groups, shown_labels(styles), winds)
     thesis = THESIS_FIGURES.get((env, "curves"), "")
     return [FigureRecord(path, f"{env}: average entropy per epoch", caption, thesis, env)]
 
@@ -148,6 +181,7 @@ def entropy_curves(env: str, groups: list[Group], out_dir: Path) -> list[FigureR
 def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
     """Entropy per epoch in each configuration, one panel per (wind, configuration) (A.1b, A.1c)."""
     styles = series_styles(groups)
+    sampled = {g.label: sampled_configurations(g) for g in groups}
     winds = winds_of(groups)
     several = len(winds) > 1
     names = groups[0].configuration_names
@@ -165,18 +199,23 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
                 ax.set_axis_off()
                 continue
             for group in members:
-                draw_curve(ax, group, styles[group.label], c)
-            draw_bound(ax, config_bound(members[0].first, c))
+                draw_curve(ax, group, styles[group.label], c, sampled[group.label])
+            draw_bound(ax, config_bound(members[0].first, c), "log(free area) of the configuration")
             fit_to_lines(ax)
             ax.set_title(f"config {c}: {names[c]}{wind_title(wind, several)}", fontsize=10)
             ax.set_xlabel("epoch")
             if c % cols == 0:
                 ax.set_ylabel("entropy (nats)")
             ax.grid(alpha=0.3)
-    fig.suptitle(f"{env}: entropy per epoch in each configuration {spread_title(groups)}")
+    fig.suptitle(
+        f"{env}: entropy per epoch in each configuration {spread_title(groups)}"
+        + rules_title(groups)
+    )
     figure_legend(fig, axes)
     path = save(fig, out_dir / f"{env}_entropy_epochs_by_config.png")
-    caption = captions.entropy_by_config_caption(groups, styles)
+    caption = captions.entropy_by_config_caption(
+        groups, shown_labels(styles), any(sampled.values())
+    )
     thesis = THESIS_FIGURES.get((env, "curves_by_config"), "")
     return [FigureRecord(path, f"{env}: entropy per epoch per configuration", caption, thesis, env)]
 
@@ -220,7 +259,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
                     alpha=0.75,
                     hatch=style.hatch,
                     edgecolor="white",
-                    label=f"{label} ({n_text(ci.n)})" if x == 0 else None,
+                    label=f"{style.label} ({n_text(ci.n)})" if x == 0 else None,
                 )
                 if ci.n >= MIN_UNITS:  # fewer: the seeds' dots say more than a t = 12.7 bar
                     ax.errorbar(pos, ci.mean, yerr=ci.half_width, color="black", capsize=4, lw=1.2)
@@ -267,11 +306,13 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
         ax.set_ylim(finite.min() - pad, finite.max() + pad)
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
-    fig.suptitle(f"{env}: entropy at the end of training {spread_title(groups)}")
+    fig.suptitle(
+        f"{env}: entropy at the end of training {spread_title(groups)}{rules_title(groups)}"
+    )
     figure_legend(fig, axes)
     path = save(fig, out_dir / f"{env}_final_entropy_bars.png")
     every_config = len(configurations) == len(names) + 1
-    caption = captions.final_bars_caption(groups, styles, every_config)
+    caption = captions.final_bars_caption(groups, shown_labels(styles), every_config)
     thesis = THESIS_FIGURES.get((env, "bars"), "")
     return [FigureRecord(path, f"{env}: final entropy per configuration", caption, thesis, env)]
 
@@ -301,9 +342,9 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
             ls=style.linestyle,
             marker="o",
             capsize=4,
-            label=f"{label} (n={ns.min()}–{ns.max()})"
+            label=f"{style.label} (n={ns.min()}–{ns.max()})"
             if ns.min() != ns.max()
-            else f"{label} (n={ns[0]})",
+            else f"{style.label} (n={ns[0]})",
         )
     draw_bound(ax, average_bound(groups[0].first))
     ax.set_xticks(winds, [format_wind(w) for w in winds])
@@ -313,7 +354,7 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
     ax.set_title(f"{env}: entropy at convergence vs wind force", fontsize=11)
     ax.legend(fontsize=8)
     path = save(fig, out_dir / f"{env}_entropy_vs_wind.png")
-    caption = captions.entropy_against_wind_caption(groups, styles)
+    caption = captions.entropy_against_wind_caption(groups, shown_labels(styles))
     thesis = THESIS_FIGURES.get((env, "wind"), "")
     return [FigureRecord(path, f"{env}: entropy against wind force", caption, thesis, env)]
 
@@ -342,7 +383,7 @@ def aggregates_figure(env: str, groups: list[Group], out_dir: Path) -> list[Figu
     styles = series_styles(groups)  # the env's: a group's colour is the same in every figure
     for _, members, title, name in per_wind(env, groups, "aggregates"):
         path = out_dir / name
-        draw_aggregates(members, {k: s.colour for k, s in styles.items()}, title, path)
+        draw_aggregates(members, styles, title, path)
         caption = captions.aggregates_caption(members)
         records.append(FigureRecord(path, f"{title}: aggregates over seeds", caption, "", env))
     return records
@@ -358,7 +399,8 @@ def diagnostics_figure(env: str, groups: list[Group], out_dir: Path) -> list[Fig
         styles = series_styles(groups)  # the env's: a group's colour is the same in every figure
         path = out_dir / name
         draw_diagnostics(members, styles, title, path)
-        caption = captions.diagnostics_caption(members)
+        without = [styles[g.label].label for g in members if not any(map(has_steps, g.runs))]
+        caption = captions.diagnostics_caption(members, without)
         records.append(FigureRecord(path, f"{title}: diagnostics", caption, "", env))
     return records
 
@@ -366,6 +408,7 @@ def diagnostics_figure(env: str, groups: list[Group], out_dir: Path) -> list[Fig
 def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
     """Log visitation probability of the final policies, one figure per wind (5.3, 5.8, 5.11)."""
     records = []
+    styles = series_styles(groups)
     for wind, at, title, name in per_wind(env, groups, "heatmaps"):
         members = [g for g in at if g.representative().positions]
         if not members:
@@ -374,7 +417,7 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
         names = members[0].configuration_names
         chosen = [(g, g.representative()) for g in members]
         rows = [
-            (f"{g.label}: seed {run.seed} ({median_of(len(g.runs))})", run.positions)
+            (f"{styles[g.label].label}: seed {run.seed} ({median_of(g)})", run.positions)
             for g, run in chosen
         ]
         cols = min(len(names), 5)
@@ -397,6 +440,7 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
 def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]:
     """Ten trajectories per configuration for a few seeds of each group (5.5, 5.6)."""
     records = []
+    styles = series_styles(groups)
     several = len(winds_of(groups)) > 1
     for group in groups:
         runs = [r for r in group.runs if r.positions]
@@ -412,7 +456,7 @@ def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRec
         trajectory_grid(fig, world, [(f"seed {r.seed}", r.positions) for r in runs], names)
         steps = next(iter(first.positions.values())).shape[1] - 1
         fig.suptitle(
-            f"{env}{wind_title(group.wind, several)}: {group.label}\n{TRAJECTORIES} "
+            f"{env}{wind_title(group.wind, several)}: {styles[group.label].label}\n{TRAJECTORIES} "
             f"trajectories of T={steps} steps per configuration, coloured by step",
             fontsize=10,
         )
@@ -421,7 +465,9 @@ def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRec
         caption = captions.trajectories_caption(group, runs)
         thesis = THESIS_FIGURES.get((env, "trajectories", group.algo), "")
         records.append(
-            FigureRecord(path, f"{env}: trajectories of {group.label}", caption, thesis, env)
+            FigureRecord(
+                path, f"{env}: trajectories of {styles[group.label].label}", caption, thesis, env
+            )
         )
     return records
 
@@ -456,7 +502,11 @@ def finetune_returns(
                 drawn = curves[(init, config)]
                 units = drawn.unit_curves()
                 name = "TRPO from scratch" if init == "scratch" else f"{algo_label(init)} init"
-                label = f"{name}{init_epochs_text(part, init)} (n={units.shape[0]})"
+                unit = "fine-tuning run" if init == "scratch" else "pre-training run"
+                n = units.shape[0]
+                label = (
+                    f"{name}{init_epochs_text(part, init)} (n={n} {unit}{'s' if n != 1 else ''})"
+                )
                 colour = algo_colour(init)
                 plot_units(ax, drawn.epochs, units, colour, "-", label, drawn.bounds)
             title = names[config] if config < len(names) else f"{config}"
@@ -496,8 +546,9 @@ def make_figures(
             if len(winds_of(members)) > 1:
                 drawn += entropy_against_wind(env, members, out_dir)
             drawn += heatmaps(env, members, out_dir)
+            rules = old_rules_text(members)
             for record in drawn:
-                record.caption += scale_text(members)
+                record.caption += scale_text(members) + (f" {rules}" if rules else "")
             records += drawn + trajectories(env, members, out_dir)
         runs = [r for r in finetune_runs if r.env == env]
         frame = finetune_frame(runs)

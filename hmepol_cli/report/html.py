@@ -12,6 +12,7 @@ from pathlib import Path
 import pandas as pd
 
 from hmepol_cli.report.figures import FigureRecord
+from hmepol_cli.report.rules import old_rules_text
 from hmepol_cli.report.runs import Group, MergedRun, SkippedRun, format_wind
 from hmepol_cli.report.stats import MIN_UNITS
 from hmepol_cli.report.summary import ReportCounts, format_number, table_sections
@@ -99,6 +100,12 @@ def scale_notice(groups: list[Group], finetune_runs: list) -> str:
     )
 
 
+def rules_notice(groups: list[Group]) -> str:
+    """A boxed paragraph when some group ran with rules that are not today's defaults."""
+    text = old_rules_text(groups)
+    return f'<p class="notice">{html.escape(text)}</p>' if text else ""
+
+
 def _under_root(path: Path, roots: list[Path]) -> str:
     """A skipped run's path inside the runs folder that holds it."""
     root = next((r for r in roots if Path(path).is_relative_to(r)), roots[0])
@@ -173,6 +180,7 @@ def write_index(
         "rliable's aggregates (Agarwal et al., 2021): interquartile mean, mean and probability "
         "of improvement with bootstrap 95% intervals over runs, and performance profiles.</p>",
         scale_notice(groups, finetune_runs),
+        rules_notice(groups),
         "<h2>Runs</h2>",
     ]
     run_rows = pd.DataFrame(

@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.errors import TableError
+from hmepol_cli.report.rules import saved_rules
 from hmepol_cli.report.runs import Run, SkippedRun, SkippedRunWarning
 from hmepol_cli.run import (
     BATCHES_CSV,
@@ -203,8 +204,9 @@ def load_run(path: Path) -> Run:
         config = {**config, "epochs": meta["epochs"]}
     if not (path / FINETUNE_CSV).exists():
         # Keys added to the schema after a run was made take their defaults, so old and new runs
-        # of the same settings group together.
-        config = {**_schema_defaults(), **config}
+        # of the same settings group together; but the rules a run older than their keys ran
+        # with are the old ones (the run package's own reading), not today's defaults.
+        config = {**_schema_defaults(), **config, **saved_rules(config)}
     run = Run(path=path, config=config, meta=meta)
     if (path / FINETUNE_CSV).exists():
         # A fine-tuning run is reported only through its returns.

@@ -6,6 +6,7 @@ holds every line and band, and one legend for a figure.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -13,10 +14,12 @@ import numpy as np
 from matplotlib.collections import LineCollection, PolyCollection
 
 from hmepol_cli.plots import BOUND_COLOUR, LINESTYLES, OTHER_COLOURS, algo_colour
+from hmepol_cli.report.rules import thesis_settings
 from hmepol_cli.report.runs import Group, algo_label
 from hmepol_cli.report.stats import MIN_UNITS, UNBOUNDED, curve_ci
 
 HATCHES = ("", "//", "..", "xx")
+VARIANT_COLOURS = OTHER_COLOURS  # none is an algorithm's
 
 
 @dataclass(frozen=True)
@@ -29,42 +32,75 @@ class Style:
     label: str
 
 
+def variant_colour_order(label: str) -> list[str]:
+    """The spare colours in the order a variant labelled ``label`` tries them: its first choice
+    comes from a hash of the label (not Python's salted hash), so one variant has one colour in
+    every report."""
+    start = int(hashlib.sha1(label.encode()).hexdigest(), 16) % len(VARIANT_COLOURS)
+    return [
+        VARIANT_COLOURS[(start + i) % len(VARIANT_COLOURS)] for i in range(len(VARIANT_COLOURS))
+    ]
+
+
 def series_styles(groups: Iterable[Group]) -> dict[str, Style]:
-    """label -> style, a colour of its own for every series: an algorithm's main series (the
-    one labelled by the algorithm alone, else its first) takes the algorithm's colour, its
-    variants the next unused colours of OTHER_COLOURS; a variant also gets a dash (and hatching
-    on bars), so that it reads as one of its algorithm's."""
+    """label -> style, a colour of its own for every series, chosen by what the series is and not
+    where it comes: an algorithm's main series (the one at the algorithm's own settings, else
+    the one labelled by the algorithm alone) takes the algorithm's colour; a variant the first
+    free colour of its own order (:func:`variant_colour_order`; variants take theirs in label
+    order, so the choice does not depend on the groups' order), and a dash (and hatching on
+    bars) from its label too, so that it reads as one of its algorithm's. Where an algorithm has
+    several series, the one at its own settings says so in its label: "HMepol (thesis
+    settings)"."""
     groups = list(dict((g.label, g) for g in groups).values())
+    thesis: set[str] = set()
+    for key in dict.fromkeys((g.env, repr(g.wind)) for g in groups):
+        thesis |= thesis_settings([g for g in groups if (g.env, repr(g.wind)) == key])
     main: dict[str, str] = {}
     for group in groups:
-        main.setdefault(group.algo, group.label)
-        if group.label == algo_label(group.algo):
+        if group.label in thesis or (
+            group.label == algo_label(group.algo) and group.algo not in main
+        ):
             main[group.algo] = group.label
-    spare = [c for c in OTHER_COLOURS if c not in {algo_colour(a) for a in main}]
+    taken = {algo_colour(a) for a in main}
+    colours: dict[str, str] = {}
+    for label in sorted(g.label for g in groups if g.label not in main.values()):
+        colour = next((c for c in variant_colour_order(label) if c not in taken), None)
+        colours[label] = colour or variant_colour_order(label)[0]  # more variants than colours
+        taken.add(colours[label])
     styles: dict[str, Style] = {}
-    per_algo: dict[str, int] = {}
-    variants = 0
     for group in groups:
-        if group.label == main[group.algo]:
+        if group.label in main.values():
             k, colour = 0, algo_colour(group.algo)
         else:
-            k = per_algo[group.algo] = per_algo.get(group.algo, 0) + 1
-            colour, variants = spare[variants % len(spare)], variants + 1
+            k = 1 + int(hashlib.sha1(group.label.encode()).hexdigest(), 16) % (len(LINESTYLES) - 1)
+            colour = colours[group.label]
         styles[group.label] = Style(
-            colour, LINESTYLES[k % len(LINESTYLES)], HATCHES[k % len(HATCHES)], group.label
+            colour, LINESTYLES[k], HATCHES[k % len(HATCHES)], _shown_label(group, groups, thesis)
         )
     return styles
 
 
-def draw_bound(ax, value: float, label: bool = True) -> None:
-    """The entropy bound (log of the free area) as a dashed line; nothing when it is unknown."""
+def _shown_label(group: Group, groups: list[Group], thesis: set[str]) -> str:
+    """The group's label, marked "thesis settings" where its algorithm has other series."""
+    if group.label not in thesis:
+        return group.label
+    plain = algo_label(group.algo)
+    if group.label == plain:
+        return f"{plain} (thesis settings)"
+    return f"{plain} (thesis settings: {group.label[len(plain) + 2 : -1]})"
+
+
+def draw_bound(ax, value: float, label: str | None = "") -> None:
+    """The entropy bound (log of the free area) as a dashed line; nothing when it is unknown.
+    ``label``: its legend entry ("": one that gives the value; None: none). Panels that each
+    have their own bound pass one label for all, so that the legend has one entry for them."""
     if np.isfinite(value):
         ax.axhline(
             value,
             color=BOUND_COLOUR,
             ls="--",
             lw=1.0,
-            label=f"log(free area) = {value:.2f} nats" if label else None,
+            label=f"log(free area) = {value:.2f} nats" if label == "" else label,
         )
 
 
