@@ -170,6 +170,18 @@ def test_a_sampled_configuration_has_one_bound_entry_and_says_n_varies(tmp_path,
     assert "Configurations are sampled each epoch" in caption
 
 
+def test_one_sampled_seed_is_n_1_not_at_most_1(tmp_path, drawn_figures):
+    run = write_run(tmp_path / "runs", seed=0, configuration_names=("a", "b"))
+    write_batches(run, {e: (0, 1) if e % 2 == 0 else (0,) for e in range(20)})
+    text = (run / "epochs.csv").read_text()
+    for epoch in range(1, 20, 2):
+        text = set_field(text, epoch + 2, "entropy_c1", "")
+    (run / "epochs.csv").write_text(text)
+    run_report(tmp_path / "runs", tmp_path / "report")
+    [legend] = drawn_figures["slope_entropy_epochs_by_config.png"].legends
+    assert [t.get_text() for t in legend.get_texts()][0] == "Mepol (n=1, no CI)"
+
+
 def test_fine_tuning_legend_says_what_n_counts(tmp_path, drawn_figures):
     for seed in (0, 1):
         write_run(tmp_path / "runs", algo="hmepol", seed=seed, name=f"hmepol-seed{seed}")

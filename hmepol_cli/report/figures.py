@@ -126,13 +126,13 @@ def shown_labels(styles: dict[str, Style]) -> list[str]:
 
 def draw_curve(ax, group: Group, style: Style, config: int | None, sampled: bool = False) -> None:
     """``sampled``: the group's seeds do not all draw each configuration every epoch, so a
-    point's n is at most the group's."""
+    point's n is at most the group's (one seed: its gaps are the epochs it did not draw)."""
     epochs, curves = group.curves(config)
     if curves.size == 0:
         return
     n = len(group.runs)
     label = f"{style.label} ({n_text(n)})"
-    if sampled:
+    if sampled and n > 1:
         label = f"{style.label} (n≤{n} per epoch{', each seed drawn' if n < MIN_UNITS else ''})"
     plot_units(ax, epochs, curves, style.colour, style.linestyle, label)
 
