@@ -218,6 +218,7 @@ def test_runs_made_with_the_old_rules_say_so(tmp_path):
     line = "Made with the old rules (env.edge=mirror, algo.backtracking=first_step)"
     assert line in html.unescape((tmp_path / "report-old" / "index.html").read_text())
     assert line in _report_record(tmp_path / "report-old", "slope_entropy_epochs.png")
+    assert line in _report_record(tmp_path / "report-old", "slope_trajectories_mepol.png")
     run_report(tmp_path / "new", tmp_path / "report-new")
     assert "old rules" not in (tmp_path / "report-new" / "index.html").read_text()
 

@@ -549,7 +549,10 @@ def make_figures(
             rules = old_rules_text(members)
             for record in drawn:
                 record.caption += scale_text(members) + (f" {rules}" if rules else "")
-            records += drawn + trajectories(env, members, out_dir)
+            paths = trajectories(env, members, out_dir)
+            for record in paths:  # a trajectory's world follows its rules too
+                record.caption += f" {rules}" if rules else ""
+            records += drawn + paths
         runs = [r for r in finetune_runs if r.env == env]
         frame = finetune_frame(runs)
         if not frame.empty:
