@@ -3,12 +3,15 @@ bf16 run refused in one line on a CPU without them, and precision=auto's choice.
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from hmepol_cli import hardware, precision
 from hmepol_cli.config import check_precision
 from hmepol_cli.errors import ConfigError
 from tests.test_bad_input import assert_one_line, run
+from tests.test_cli import TINY, hmepol
 
 AVX2_EPYC = """processor\t: 0
 vendor_id\t: AuthenticAMD
@@ -112,3 +115,14 @@ def test_precision_auto_says_what_it_chose_and_why(cpu, monkeypatch, text, speed
     cpu(text)
     monkeypatch.setattr(hardware, "bf16_speedup", lambda device: speedup)
     assert precision.auto_reason("cpu").startswith(f"precision=auto chose {chosen}: {why}")
+
+
+@pytest.mark.slow
+def test_a_run_with_precision_auto_says_its_choice_and_records_it(tmp_path):
+    """Whatever this machine chooses, the run says it as it starts and run.json keeps it."""
+    run_dir = tmp_path / "run"
+    proc = hmepol("train", *TINY, "env=corridor", "algo=mepol", "epochs=1", "precision=auto",
+                  f"hydra.run.dir={run_dir}", cwd=tmp_path)  # fmt: skip
+    chosen = json.loads((run_dir / "run.json").read_text())["precision"]
+    assert chosen in ("float32", "bf16")
+    assert f"hmepol: precision=auto chose {chosen}: " in proc.stdout
