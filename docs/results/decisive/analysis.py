@@ -226,15 +226,17 @@ def drops_table(lines: list[str], by_seed: dict[str, dict[int, Run]]) -> None:
 
 
 def preregistration(root: Path) -> tuple[str, int] | None:
-    """(commit, commit time) of the commit that added PREREGISTRATION.md, from git."""
+    """(commit, commit time) of the commit that added PREREGISTRATION.md, from git; None without
+    the history (no git, or a shallow clone, where that commit may be missing)."""
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True,
+                              check=True).stdout.strip()  # fmt: skip
+
     try:
-        out = subprocess.run(
-            ["git", "log", "--diff-filter=A", "--format=%H %ct", "--", "PREREGISTRATION.md"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.split()
+        if git("rev-parse", "--is-shallow-repository") != "false":
+            return None
+        out = git("log", "--diff-filter=A", "--format=%H %ct", "--", "PREREGISTRATION.md").split()
     except (OSError, subprocess.CalledProcessError):
         return None
     return (out[-2], int(out[-1])) if len(out) >= 2 else None
