@@ -51,7 +51,7 @@ def make_run(
     n = epochs if epochs is not None else len(np.atleast_1d(c0))
     c0 = np.broadcast_to(np.asarray(c0, float), (n,)).copy()
     c1 = np.broadcast_to(np.asarray(c1, float), (n,)).copy()
-    run = folder / f"experiment-x_seed-{seed}"
+    run = folder / f"{'' if algo == 'mepol' else algo + '_'}experiment-x_seed-{seed}"
     run.mkdir(parents=True)
     pd.DataFrame({"epoch": np.arange(n), "entropy": (c0 + c1) / 2, "entropy_c0": c0,
                   "entropy_c1": c1, "wall_time": start + np.arange(n)}).to_csv(
@@ -187,3 +187,30 @@ def test_the_kept_runs_postdate_the_preregistration_and_use_the_faithful_rules()
         pytest.skip("no git history here")
     text = analysis.report(DECISIVE, registered)
     assert "Provenance: all" in text and "departures" not in text
+
+
+def test_multigrid_finals_average_the_last_10_percent_of_the_epochs_that_drew_the_config(tmp_path):
+    """Section 5: average = mean of `entropy` over epochs 90-99; configuration 0 = mean of
+    entropy_c0 over the last 10% of the epochs that drew it: here drawn in epochs 0, 2, ..., 78
+    and 95 (41 epochs), so the last 5 of them (72-78: 3 nats, 95: 1 nat), mean 2.6, not the
+    1 nat of the drawn epochs among the last 10."""
+    epochs = np.arange(100)
+    drawn = ((epochs < 80) & (epochs % 2 == 0)) | (epochs == 95)
+    c0 = np.where(epochs == 95, 1.0, np.where(epochs >= 72, 3.0, -5.0))
+    for s in range(4):
+        for algo, shift in (("alphamepol", 0.0), ("hmepol", 0.2 + 0.01 * s)):
+            values = np.where(drawn, c0, np.nan) + shift
+            run = make_run(tmp_path / "multigrid", s, values, 0.0, status="finished", algo=algo)
+            table = pd.read_csv(run / "epochs.csv")
+            table["entropy"] = np.where(epochs >= 90, 2.0, 7.0) + shift
+            table["diverged"] = (epochs >= 60) & (algo == "hmepol") & (s == 1)
+            table.to_csv(run / "epochs.csv", index=False)
+    text = analysis.report(tmp_path, REGISTERED)
+    average = next(line for line in text.splitlines() if line.startswith("| average"))
+    config0 = next(line for line in text.splitlines() if line.startswith("| configuration 0"))
+    d = np.array([0.20, 0.21, 0.22, 0.23])
+    half = T_975_3 * d.std(ddof=1) / 2
+    interval = f" {d.mean():+.3f} [{d.mean() - half:+.3f}, {d.mean() + half:+.3f}] "
+    assert average.split("|")[1:6] == [" average ", " 2.000 ", " 2.215 ", interval, " above "]
+    assert config0.split("|")[2:4] == [" 2.600 ", " 2.815 "]
+    assert "| 1 | 2.000 / 2.210 | 2.600 / 2.810 | 40 (from epoch 60) |" in text

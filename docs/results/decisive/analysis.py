@@ -334,8 +334,9 @@ def multigrid(lines: list[str], root: Path = HERE) -> list[Run]:
         lines += [f"Interim, both arms over their first {upto} epochs:", ""]
     lines += ["| metric | alpha-Mepol | HMepol | HMepol - alpha-Mepol [95% t-interval] | answer |",
               "|---|---|---|---|---|"]  # fmt: skip
+    finals = {}
     for column, metric in (("entropy", "average"), ("entropy_c0", "configuration 0")):
-        a, b = (
+        a, b = finals[column] = tuple(
             np.array([final_value(early(by[algo][s].epochs, upto)[column].to_numpy(float))
                       for s in common])
             for algo in ("alphamepol", "hmepol")
@@ -344,6 +345,17 @@ def multigrid(lines: list[str], root: Path = HERE) -> list[Run]:
         answer = verdict(r, final).replace("ends ", "")
         lines.append(f"| {metric} | {a.mean():.3f} | {b.mean():.3f} | {r['mean']:+.3f} "
                      f"[{r['low']:+.3f}, {r['high']:+.3f}] | {answer} |")  # fmt: skip
+    lines += ["", "Per seed (descriptive): final entropies, and the epochs in which the run's "
+              "divergence alarm fired (`diverged`: history or action beyond the alarm bounds).",
+              "", "| seed | average: alpha-Mepol / HMepol | configuration 0: alpha-Mepol / HMepol "
+              "| HMepol epochs diverged |", "|---|---|---|---|"]  # fmt: skip
+    for i, s in enumerate(common):
+        table = early(by["hmepol"][s].epochs, upto)
+        flags = table.get("diverged", pd.Series(False, index=table.index)).astype(bool)
+        diverged = table.epoch[flags]
+        when = f"{len(diverged)} (from epoch {int(diverged.min())})" if len(diverged) else "0"
+        (a, b), (a0, b0) = finals["entropy"], finals["entropy_c0"]
+        lines.append(f"| {s} | {a[i]:.3f} / {b[i]:.3f} | {a0[i]:.3f} / {b0[i]:.3f} | {when} |")
     lines.append("")
     return list(rs.values())
 
@@ -436,7 +448,7 @@ def figures(out: Path, root: Path = HERE) -> list[Path]:
         notes = draw_panels(axes, panels, arms, NAMES, EPOCHS, final)
         fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({'final' if final else 'INTERIM'}; "
                      f"epochs done of {EPOCHS}: {', '.join(notes)})")  # fmt: skip
-        written.append(save_figure(fig, out / "corridor_interim.png",
+        written.append(save_figure(fig, out / "corridor.png",
             "Thick: mean over seeds, over the epochs every seed of the arm has; thin: each seed. "
             "No interval drawn. Faithful rules (env.edge=slide, algo.backtracking=reference), "
             "N = 100 x 400 per epoch, commit a95e183. Descriptive (PREREGISTRATION.md section 4): "
@@ -459,7 +471,7 @@ def figures(out: Path, root: Path = HERE) -> list[Path]:
         state = "final" if final else "INTERIM"
         fig.suptitle(f"Decisive experiment, multigrid quick preset ({state}; epochs done of "
                      f"{epochs}: {', '.join(notes)})")  # fmt: skip
-        written.append(save_figure(fig, out / "multigrid_interim.png",
+        written.append(save_figure(fig, out / "multigrid.png",
             "Thick: mean over seeds; thin: each seed; no interval drawn. Configuration 0: only the "
             "epochs that drew it (the mean is over the seeds that did). Faithful rules, "
             "40 trajectories x 400 steps per epoch, commit a95e183."))  # fmt: skip
@@ -473,7 +485,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--results", type=Path, help="a file whose tables between the markers "
                         f"{BEGIN} and {END} are replaced")  # fmt: skip
     parser.add_argument("--figures", type=Path, help="a folder for the curves per arm "
-                        "(corridor_interim.png, multigrid_interim.png)")  # fmt: skip
+                        "(corridor.png, multigrid.png)")  # fmt: skip
     args = parser.parse_args(argv)
     text = report(HERE, preregistration(HERE))
     if args.out:
