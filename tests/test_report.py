@@ -1099,3 +1099,49 @@ def test_group_labels_read_as_command_line_overrides():
     assert [override_text(v) for v in (None, True, False, 0.4, "epoch")] == [
         "null", "true", "false", "0.4", "epoch",
     ]  # fmt: skip
+
+
+def test_an_export_that_fails_midway_leaves_the_kept_files_whole(tmp_path, monkeypatch):
+    """A save made while runs go on can be interrupted: a kept table is then its old copy, never
+    a prefix of the new one, and no temporary file is left beside it."""
+    import hmepol_cli.report.export as export
+    import hmepol_cli.run.io as run_io
+    from hmepol_cli.errors import StorageError
+
+    run_dir = write_run(tmp_path / "runs", algo="mepol", seed=0, final=1.0)
+    export.export_runs(tmp_path / "runs", tmp_path / "kept")
+    kept = tmp_path / "kept" / run_dir.relative_to(tmp_path / "runs") / "epochs.csv"
+    before = kept.read_bytes()
+    (run_dir / "epochs.csv").write_bytes(before + before.splitlines(keepends=True)[-1] * 50)
+
+    real_mkstemp, real_fdopen, opened = run_io.tempfile.mkstemp, run_io.os.fdopen, {}
+
+    def mkstemp(**kwargs):
+        fd, name = real_mkstemp(**kwargs)
+        opened[fd] = Path(name).name
+        return fd, name
+
+    class DiskFullHalfway:  # writes half of what it is given, then the disk is full
+        def __init__(self, f):
+            self.f = f
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+        def write(self, data):
+            self.f.write(data[: len(data) // 2])
+            raise OSError(28, "No space left on device")
+
+    def fdopen(fd, mode):
+        f = real_fdopen(fd, mode)
+        return DiskFullHalfway(f) if opened[fd].startswith(".epochs.csv.") else f
+
+    monkeypatch.setattr(run_io.tempfile, "mkstemp", mkstemp)
+    monkeypatch.setattr(run_io.os, "fdopen", fdopen)
+    with pytest.raises(StorageError, match="epochs.csv"):
+        export.export_runs(tmp_path / "runs", tmp_path / "kept")
+    assert kept.read_bytes() == before
+    assert not [p for p in kept.parent.iterdir() if p.name.startswith(".")]

@@ -8,7 +8,9 @@ steps.csv.gz, and eval/final.npz with its positions stored as float16 (a heatmap
 wide: float16's 1e-3 resolution on [-6, 6] changes no figure, and halves the file).
 Checkpoints, batches.csv and pictures are left out. ``hmepol
 report DEST`` then rebuilds every figure and table from these files alone. Unfinished runs are
-copied too (a later export brings them up to date); the report lists them as skipped.
+copied too (a later export brings them up to date); the report lists them as skipped. Every
+file is written whole or not at all, so an export interrupted while runs go on (a periodic save
+beside them) never leaves a half-copied table that the report would read.
 """
 
 from __future__ import annotations
@@ -16,7 +18,6 @@ from __future__ import annotations
 import argparse
 import gzip
 import io
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,7 @@ def export_runs(source: Path, dest: Path) -> list[Path]:
         target.mkdir(parents=True, exist_ok=True)
         for name in KEPT:
             if (run_dir / name).is_file():
-                shutil.copyfile(run_dir / name, target / name)
+                atomic_write_bytes(target / name, (run_dir / name).read_bytes())
         if (run_dir / STEPS_CSV).is_file():
             data = gzip.compress((run_dir / STEPS_CSV).read_bytes(), mtime=0)
             atomic_write_bytes(target / f"{STEPS_CSV}.gz", data)

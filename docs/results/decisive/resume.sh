@@ -5,6 +5,12 @@
 #   docs/results/decisive/resume.sh status   # epochs done per run, and which chains are running
 #   docs/results/decisive/resume.sh save     # copy the runs' small files and resume kits here,
 #                                             # and rewrite RESULTS.md's interim tables
+#   docs/results/decisive/resume.sh save --files   # the same without RESULTS.md
+#
+# `start` also starts an autosaver: every $SAVE_EVERY seconds (default 1800) while a chain runs,
+# and once after the last one ends, it runs `save --files`, so that a machine lost before the
+# next commit loses at most that stretch of the runs wherever the working tree's uncommitted
+# files are recovered. Saves take a lock: a manual save waits for an automatic one to finish.
 #
 # The runs use the pre-registered commit (the one that added PREREGISTRATION.md), from a
 # worktree of it ($DECISIVE_TREE, default: ../decisive beside this checkout) with a virtual
@@ -21,6 +27,7 @@ TREE=${DECISIVE_TREE:-$(dirname "$MAIN")/decisive}
 OUT=$TREE/outputs/decisive
 PY=$TREE/.venv/bin/python
 TORCH_VERSION=${TORCH_VERSION:-2.13.0}
+SAVE_EVERY=${SAVE_EVERY:-1800}
 
 # One chain of sweeps per core, each stage a population (PREREGISTRATION.md, section 2).
 COMMON="progress=false diagnostics=true threads=1 checkpoint.keep_every=50 hydra/launcher=population"
@@ -108,14 +115,32 @@ status() {
       "$("$PY" -c 'import json,sys; print(json.load(open(sys.argv[1]))["status"])' "$run/run.json")"
   done
   for name in A B M; do
-    if [ -f "$OUT/$name.pid" ] && kill -0 "$(cat "$OUT/$name.pid")" 2>/dev/null; then
-      echo "chain $name running"; else echo "chain $name not running"; fi
+    if running "$name"; then echo "chain $name running"; else echo "chain $name not running"; fi
   done
+  if running S; then echo "autosaver running (every ${SAVE_EVERY}s)"; else echo "autosaver not running"; fi
+  [ -f "$OUT/last_save" ] && echo "last save: $(cat "$OUT/last_save")"
+  return 0
+}
+
+running() { [ -f "$OUT/$1.pid" ] && kill -0 "$(cat "$OUT/$1.pid")" 2>/dev/null; }
+
+autosaver() {
+  if running S; then echo "autosaver is running (pid $(cat "$OUT/S.pid"))"; return; fi
+  nohup bash -c "
+    alive() { for n in A B M; do [ -f '$OUT/'\$n.pid ] && kill -0 \$(cat '$OUT/'\$n.pid) 2>/dev/null && return 0; done; return 1; }
+    while alive; do
+      for _ in \$(seq $SAVE_EVERY); do alive || break; sleep 1; done
+      '$HERE/resume.sh' save --files
+    done" >> "$OUT/S.log" 2>&1 &
+  echo $! > "$OUT/S.pid"
+  echo "autosaver started (pid $!, every ${SAVE_EVERY}s), log $OUT/S.log"
 }
 
 # The checkpoint is copied first, the tables after it: they then hold at least the epochs the
 # checkpoint covers (resume drops the rows past it). Finished runs need no kit.
 save() {
+  exec 9> "$OUT/save.lock"
+  flock 9
   local run arm dest
   for run in "$OUT"/*/*/; do
     run=${run%/}
@@ -132,16 +157,19 @@ save() {
     fi
   done
   for arm in "$OUT"/*/; do
-    "$PY" -m hmepol_cli.report.export "$arm" "$HERE/$(basename "$arm")"
+    # this checkout's export (it writes every file whole), with the runs' environment
+    PYTHONPATH=$MAIN "$PY" -m hmepol_cli.report.export "$arm" "$HERE/$(basename "$arm")"
   done
-  "$PY" "$HERE/analysis.py" --results "$MAIN/RESULTS.md" > /dev/null  # the interim tables
+  [ "${1:-}" = --files ] || "$PY" "$HERE/analysis.py" --results "$MAIN/RESULTS.md" > /dev/null
+  date -u '+%Y-%m-%d %H:%M:%S UTC' > "$OUT/last_save"
+  flock -u 9
 }
 
 case "${1:-}" in
   start)
     worktree; restore
-    chain A "${CHAIN_A[@]}"; chain B "${CHAIN_B[@]}"; chain M "${CHAIN_M[@]}" ;;
+    chain A "${CHAIN_A[@]}"; chain B "${CHAIN_B[@]}"; chain M "${CHAIN_M[@]}"; autosaver ;;
   status) status ;;
-  save) save ;;
-  *) echo "usage: $0 start | status | save" >&2; exit 2 ;;
+  save) save "${2:-}" ;;
+  *) echo "usage: $0 start | status | save [--files]" >&2; exit 2 ;;
 esac
