@@ -214,3 +214,27 @@ def test_multigrid_finals_average_the_last_10_percent_of_the_epochs_that_drew_th
     assert average.split("|")[1:6] == [" average ", " 2.000 ", " 2.215 ", interval, " above "]
     assert config0.split("|")[2:4] == [" 2.600 ", " 2.815 "]
     assert "| 1 | 2.000 / 2.210 | 2.600 / 2.810 | 40 (from epoch 60) |" in text
+
+
+def test_while_stage_two_runs_the_figure_keeps_stage_one_s_mean_over_all_its_epochs():
+    """A thick mean over every seed of an arm would be cut to the epochs stage 2 has; while
+    stage 2 runs there is one mean per stage, each over its own seeds' common epochs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def curve(n, level):
+        return pd.DataFrame({"epoch": np.arange(n), "m": level + np.arange(n) / 100})
+
+    by_seed = {s: curve(10, s) for s in range(4)} | {s: curve(3, 10 * s) for s in (4, 5)}
+    fig, ax = plt.subplots()
+    notes = analysis.draw_arms(ax, {"a": by_seed}, "m", {"a": "arm"}, {"a": "C0"})
+    thick = [line for line in ax.lines if line.get_linewidth() == 2]
+    plt.close(fig)
+    assert [len(line.get_ydata()) for line in thick] == [10, 3]
+    np.testing.assert_allclose(thick[0].get_ydata(), 1.5 + np.arange(10) / 100)  # (0+1+2+3)/4
+    np.testing.assert_allclose(thick[1].get_ydata(), 45 + np.arange(3) / 100)  # (40+50)/2
+    assert [line.get_linestyle() for line in thick] == ["-", "--"]
+    assert notes == ["arm 10/3"]
+    assert analysis.mean_groups({s: curve(10, s) for s in range(8)}) == [list(range(8))]

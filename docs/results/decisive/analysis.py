@@ -40,6 +40,7 @@ HERE = Path(__file__).resolve().parent
 BEGIN, END = "<!-- decisive tables: begin -->", "<!-- decisive tables: end -->"
 EPOCHS, WINDOW, HALF_WIDTH = 500, 50, 0.3
 PRIMARY_SEEDS = tuple(range(8))  # PREREGISTRATION.md section 2: seeds 0-7 (the CPU set)
+STAGES = (tuple(range(4)), tuple(range(4, 8)))  # section 2: stage 1, then stage 2
 DROP_NATS, DROP_FROM = 1.0, 30  # section 4: a fall of more than 1 nat, from epoch 30
 ARMS = {"A": "mepol", "B": "exact", "C": "hmepol"}
 NAMES = {"A": "Mepol", "B": "HMepol, exact trust region", "C": "HMepol, one-step (thesis)"}
@@ -375,23 +376,40 @@ MULTIGRID_NAMES = {"alphamepol": "alpha-Mepol", "hmepol": "HMepol"}
 BOUND = {"color": "0.3", "ls": "--", "lw": 1}
 
 
+def mean_groups(by_seed: dict[int, pd.DataFrame]) -> list[list[int]]:
+    """The seeds each thick mean is over: all of them once they have the same epochs done;
+    while stage 2 runs, one mean per stage (section 2: seeds 0-3, then 4-7), so that the
+    finished stage's mean is not cut to the epochs the new one has."""
+    if len({len(t) for t in by_seed.values()}) == 1:
+        return [sorted(by_seed)]
+    groups = [[s for s in sorted(by_seed) if s in stage] for stage in STAGES]
+    rest = [s for s in sorted(by_seed) if not any(s in stage for stage in STAGES)]
+    return [g for g in (*groups, rest) if g]
+
+
 def draw_arms(ax, arms: dict[str, dict[int, pd.DataFrame]], column: str, names: dict[str, str],
               colours: dict[str, str]) -> list[str]:  # fmt: skip
     """Each seed's curve (thin) and the mean over the arm's seeds (thick) over the epochs every
-    seed of the arm has; returns "<arm> <epochs done>" for the title."""
+    seed of the group has (mean_groups: one group, or one per stage while stage 2 runs, the
+    later stage dashed); returns "<arm> <epochs done>" for the title."""
     notes = []
     for arm, by_seed in arms.items():
         if not by_seed:
             continue
-        done = min(len(t) for t in by_seed.values())
         for t in by_seed.values():  # a dot on each epoch where the column has gaps
             ax.plot(t.epoch, t[column], color=colours[arm], lw=0.7, alpha=0.35,
                     marker="." if t[column].isna().any() else None, ms=3)  # fmt: skip
-        table = pd.concat({s: t.set_index("epoch")[column] for s, t in by_seed.items()}, axis=1)
-        mean = table.loc[: done - 1].mean(axis=1)  # epochs without the column (NaN) skipped
-        ax.plot(mean.index, mean.to_numpy(), color=colours[arm], lw=2,
-                label=f"{names[arm]} (n={len(by_seed)}; epochs 0-{done - 1})")  # fmt: skip
-        notes.append(f"{names[arm]} {done}")
+        groups = mean_groups(by_seed)
+        for i, seeds in enumerate(groups):
+            done = min(len(by_seed[s]) for s in seeds)
+            table = pd.concat({s: by_seed[s].set_index("epoch")[column] for s in seeds}, axis=1)
+            mean = table.loc[: done - 1].mean(axis=1)  # epochs without the column (NaN) skipped
+            which = f"seeds {seeds[0]}-{seeds[-1]}, " if len(groups) > 1 else ""
+            ax.plot(mean.index, mean.to_numpy(), color=colours[arm], lw=2,
+                    ls="--" if i else "-",
+                    label=f"{names[arm]} ({which}n={len(seeds)}; epochs 0-{done - 1})")  # fmt: skip
+        notes.append(f"{names[arm]} " + "/".join(
+            str(min(len(by_seed[s]) for s in seeds)) for seeds in groups))  # fmt: skip
     return notes
 
 
@@ -449,7 +467,8 @@ def figures(out: Path, root: Path = HERE) -> list[Path]:
         fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({'final' if final else 'INTERIM'}; "
                      f"epochs done of {EPOCHS}: {', '.join(notes)})")  # fmt: skip
         written.append(save_figure(fig, out / "corridor.png",
-            "Thick: mean over seeds, over the epochs every seed of the arm has; thin: each seed. "
+            "Thick: mean over seeds, over the epochs every one of them has (while stage 2 runs, "
+            "one mean per stage, seeds 4-7 dashed); thin: each seed. "
             "No interval drawn. Faithful rules (env.edge=slide, algo.backtracking=reference), "
             "N = 100 x 400 per epoch, commit a95e183. Descriptive (PREREGISTRATION.md section 4): "
             "the answer is the table in RESULTS.md."))  # fmt: skip
