@@ -92,9 +92,7 @@ restore() {
 
 chain() {  # name, then its stages: one background shell runs them one after the other
   local name=$1; shift
-  if [ -f "$OUT/$name.pid" ] && kill -0 "$(cat "$OUT/$name.pid")" 2>/dev/null; then
-    echo "chain $name is running (pid $(cat "$OUT/$name.pid"))"; return
-  fi
+  if running "$name"; then echo "chain $name is running (pid $(cat "$OUT/$name.pid"))"; return; fi
   local script="cd '$TREE'"
   local stage arm overrides
   for stage in "$@"; do
