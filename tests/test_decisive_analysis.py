@@ -162,8 +162,9 @@ def test_drops_count_falls_of_more_than_one_nat_from_epoch_30(tmp_path):
     c0[60:] = -1.4  # 0.9 nats at epoch 60: not a drop
     make_run(tmp_path / "mepol", 0, c0, 3.0)
     make_run(tmp_path / "mepol", 1, 3.0, 3.0, epochs=100)
+    make_run(tmp_path / "mepol", 2, 3.0, 3.0, epochs=30)  # not past epoch 30: not counted
     text = analysis.report(tmp_path, REGISTERED)
-    assert "| A: Mepol | 140 | 1 / 0 | 1 of 2 |" in text
+    assert "| A: Mepol | 140 | 1 / 0 | 1 of 2 past epoch 30 |" in text
 
 
 def test_provenance_names_every_departure(tmp_path):

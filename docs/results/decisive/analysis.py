@@ -218,11 +218,12 @@ def drops_table(lines: list[str], by_seed: dict[str, dict[int, Run]]) -> None:
               "", "| arm | seed-epochs | drops clockwise / counterclockwise | runs with a drop |",
               "|---|---|---|---|"]  # fmt: skip
     for arm, rs in by_seed.items():
-        counts = [drops(r) for r in rs.values()]
-        epochs = sum(max(0, r.done - DROP_FROM) for r in rs.values())
+        past = [r for r in rs.values() if r.done > DROP_FROM]  # runs that can have a drop
+        counts = [drops(r) for r in past]
+        epochs = sum(r.done - DROP_FROM for r in past)
         lines.append(f"| {arm}: {NAMES[arm]} | {epochs} | {sum(c[0] for c in counts)} / "
                      f"{sum(c[1] for c in counts)} | {sum(1 for c in counts if c[0] + c[1])} of "
-                     f"{len(counts)} |")  # fmt: skip
+                     f"{len(counts)} past epoch {DROP_FROM} |")  # fmt: skip
     lines.append("")
 
 
