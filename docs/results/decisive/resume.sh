@@ -2,7 +2,7 @@
 # The decisive experiment's runs (PREREGISTRATION.md beside this file): start, resume, save.
 #
 #   docs/results/decisive/resume.sh start    # start, or resume, every chain of runs, in the background
-#   docs/results/decisive/resume.sh status   # epochs done per run, and which chains are running
+#   docs/results/decisive/resume.sh status   # epochs done per run, pace and time left, running chains
 #   docs/results/decisive/resume.sh save     # copy the runs' small files and resume kits here,
 #                                             # and rewrite RESULTS.md's interim tables
 #   docs/results/decisive/resume.sh save --files   # the same without RESULTS.md
@@ -105,13 +105,25 @@ chain() {  # name, then its stages: one background shell runs them one after the
   echo "chain $name started (pid $!), log $OUT/$name.log"
 }
 
+# Per run: epochs done, status and, while it runs, its pace (median seconds of its last 10
+# epochs) and the time that pace leaves to its last epoch.
 status() {
-  local run
-  for run in "$OUT"/*/*/; do
-    [ -f "$run/epochs.csv" ] || continue
-    printf '%-70s %4s epochs  %s\n' "${run#"$OUT"/}" "$(($(wc -l < "$run/epochs.csv") - 1))" \
-      "$("$PY" -c 'import json,sys; print(json.load(open(sys.argv[1]))["status"])' "$run/run.json")"
-  done
+  "$PY" - "$OUT" <<'PYTHON'
+import csv, json, statistics, sys
+from pathlib import Path
+out = Path(sys.argv[1])
+for run in sorted(p.parent for p in out.glob("*/*/epochs.csv")):
+    with open(run / "epochs.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    info = json.loads((run / "run.json").read_text())
+    line = f"{str(run.relative_to(out)) + '/':<70} {len(rows):4d} epochs  {info['status']}"
+    seconds = [float(r["seconds"]) for r in rows[-10:] if r.get("seconds")]
+    if info["status"] == "running" and seconds:
+        pace = statistics.median(seconds)
+        left = max(0, info["epochs"] - len(rows)) * pace / 3600
+        line += f"  {pace:.0f} s/epoch, {left:.1f} h left at that pace"
+    print(line)
+PYTHON
   for name in A B M; do
     if running "$name"; then echo "chain $name running"; else echo "chain $name not running"; fi
   done
