@@ -29,17 +29,19 @@ PY=$TREE/.venv/bin/python
 TORCH_VERSION=${TORCH_VERSION:-2.13.0}
 SAVE_EVERY=${SAVE_EVERY:-1800}
 
-# One chain of sweeps per core, each stage a population (PREREGISTRATION.md, section 2).
+# One chain of sweeps per core, each stage a population (PREREGISTRATION.md, section 2). Arm C
+# (the thesis' HMepol) takes the cores that arms A and B free: seeds 0-3 after B's exact trust
+# region (the cheaper arm, done first), seeds 4-7 after A's Mepol.
 COMMON="progress=false diagnostics=true threads=1 checkpoint.keep_every=50 hydra/launcher=population"
 CHAIN_A=(
   "mepol experiment=corridor_mepol seed=0,1,2,3"
   "mepol experiment=corridor_mepol seed=4,5,6,7"
-  "hmepol experiment=corridor_hmepol seed=0,1,2,3"
   "hmepol experiment=corridor_hmepol seed=4,5,6,7"
 )
 CHAIN_B=(
   "exact experiment=corridor_hmepol_exact seed=0,1,2,3"
   "exact experiment=corridor_hmepol_exact seed=4,5,6,7"
+  "hmepol experiment=corridor_hmepol seed=0,1,2,3"
 )
 CHAIN_M=(
   "multigrid experiment=quick_multigrid algo=alphamepol,hmepol seed=0,1,2,3"
