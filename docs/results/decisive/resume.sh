@@ -33,12 +33,18 @@ SAVE_EVERY=${SAVE_EVERY:-1800}
 # (the thesis' HMepol) takes the cores that arms A and B free: seeds 0-3 after B's exact trust
 # region (the cheaper arm, done first), seeds 4-7 after A's Mepol.
 COMMON="progress=false diagnostics=true threads=1 checkpoint.keep_every=50 hydra/launcher=population"
+# Mepol's seeds 4-7 ran as one population of 4 to epoch 352; from there (2026-12-03, arm B
+# done) they run as two populations of 2, one per chain, so that arm A has both cores before
+# arm C takes them, the order section 2 sets. A member computes the same numbers in any
+# population (on a CPU each member is its own loop of ordinary calls; tests/test_sweep.py
+# checks a population's curves equal separate runs' exactly), so the split changes only the pace.
 CHAIN_A=(
   "mepol experiment=corridor_mepol seed=0,1,2,3"
-  "mepol experiment=corridor_mepol seed=4,5,6,7"
+  "mepol experiment=corridor_mepol seed=4,5"
   "hmepol experiment=corridor_hmepol seed=4,5,6,7"
 )
 CHAIN_B=(
+  "mepol experiment=corridor_mepol seed=6,7"
   "exact experiment=corridor_hmepol_exact seed=0,1,2,3"
   "exact experiment=corridor_hmepol_exact seed=4,5,6,7"
   "hmepol experiment=corridor_hmepol seed=0,1,2,3"
