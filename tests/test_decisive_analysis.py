@@ -239,3 +239,22 @@ def test_while_stage_two_runs_the_figure_keeps_stage_one_s_mean_over_all_its_epo
     assert [line.get_linestyle() for line in thick] == ["-", "--"]
     assert notes == ["arm 10/3"]
     assert analysis.mean_groups({s: curve(10, s) for s in range(8)}) == [list(range(8))]
+
+
+def test_the_corridor_figure_is_final_for_the_primary_arms_while_arm_c_runs(tmp_path):
+    """Arms A and B with seeds 0-7 at 500 epochs and arm C short: "A and B final, C INTERIM";
+    one primary seed short: "INTERIM"; every arm complete: "final"."""
+
+    def arm(folder, done):
+        for seed, n in done.items():
+            make_run(tmp_path / folder, seed, 4.0, 4.0, epochs=n,
+                     status="finished" if n == 500 else "running")  # fmt: skip
+        return analysis.runs(tmp_path / folder)
+
+    full = {s: 500 for s in range(8)}
+    found = {"A": arm("a", full), "B": arm("b", full), "C": arm("c", {0: 9, 1: 9})}
+    assert analysis.corridor_state(found) == "A and B final, C INTERIM"
+    found["A"] = arm("a7", full | {7: 499})
+    assert analysis.corridor_state(found) == "INTERIM"
+    found["A"], found["C"] = arm("a8", full), arm("c8", full)
+    assert analysis.corridor_state(found) == "final"

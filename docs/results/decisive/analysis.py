@@ -439,6 +439,24 @@ def save_figure(fig, path: Path, caption: str) -> Path:
     return path
 
 
+def corridor_state(found: dict[str, dict[str, Run]]) -> str:
+    """The corridor figure's state: "final" once every arm has its pre-registered seeds
+    complete; "A and B final, C interim" once the primary comparison's two arms have (arm C,
+    secondary, may run on); else "INTERIM"."""
+
+    def done(arm: str) -> bool:
+        by_seed = {r.seed: r for r in found.get(arm, {}).values()}
+        return set(PRIMARY_SEEDS) <= set(by_seed) and all(r.complete() for r in by_seed.values())
+
+    if all(done(arm) for arm in found):
+        return "final"
+    primary = set(COMPARISONS[0])
+    if all(done(arm) for arm in primary):
+        later = sorted(set(found) - primary)
+        return f"{' and '.join(sorted(primary))} final, {', '.join(later)} INTERIM"
+    return "INTERIM"
+
+
 def figures(out: Path, root: Path = HERE) -> list[Path]:
     """The pre-registered descriptive curves (PREREGISTRATION.md section 4), drawn interim too:
     per arm each seed's curve and the mean over seeds (n = 4 or 8: no band)."""
@@ -456,16 +474,15 @@ def figures(out: Path, root: Path = HERE) -> list[Path]:
                     for r in rs.values()} for a, rs in found.items()}  # fmt: skip
         every = [r for rs in found.values() for r in rs.values()]
         bound = every[0].info["log_free_area"][0]
-        final = all(r.complete() for r in every) and all(
-            set(PRIMARY_SEEDS) <= set(by_seed) for by_seed in arms.values()
-        )
+        state = corridor_state(found)
+        final = state == "final"
         panels = (("m", "(clockwise + counterclockwise) / 2"),
                   ("entropy_c0", "configuration 0: clockwise"),
                   ("entropy_c1", "configuration 1: counterclockwise"))  # fmt: skip
         fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), sharey=True)
         panels = [(column, title, bound) for column, title in panels]
         notes = draw_panels(axes, panels, arms, NAMES, EPOCHS, final)
-        fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({'final' if final else 'INTERIM'}; "
+        fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({state}; "
                      f"epochs done of {EPOCHS}: {', '.join(notes)})")  # fmt: skip
         written.append(save_figure(fig, out / "corridor.png",
             "Thick: mean over seeds, over the epochs every one of them has (while stage 2 runs, "
