@@ -482,8 +482,8 @@ def figures(out: Path, root: Path = HERE) -> list[Path]:
         fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), sharey=True)
         panels = [(column, title, bound) for column, title in panels]
         notes = draw_panels(axes, panels, arms, NAMES, EPOCHS, final)
-        fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({state}; "
-                     f"epochs done of {EPOCHS}: {', '.join(notes)})")  # fmt: skip
+        fig.suptitle(f"Decisive experiment, corridor wind 0.4 ({state})\n"
+                     f"epochs done of {EPOCHS}: {', '.join(notes)}")  # fmt: skip
         written.append(save_figure(fig, out / "corridor.png",
             "Thick: mean over seeds, over the epochs every one of them has (while stage 2 runs, "
             "one mean per stage, seeds 4-7 dashed); thin: each seed. "
