@@ -441,7 +441,7 @@ def save_figure(fig, path: Path, caption: str) -> Path:
 
 def corridor_state(found: dict[str, dict[str, Run]]) -> str:
     """The corridor figure's state: "final" once every arm has its pre-registered seeds
-    complete; "A and B final, C interim" once the primary comparison's two arms have (arm C,
+    complete; "A and B final, C INTERIM" once the primary comparison's two arms have (arm C,
     secondary, may run on); else "INTERIM"."""
 
     def done(arm: str) -> bool:
