@@ -233,6 +233,8 @@ def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> 
             say(f"hmepol: {auto_reason(device_type(str(todo[0][0].device)))}")
         started = time.monotonic()
         trainer = Trainer([c for c, _ in todo], [d for _, d in todo])
+        if str(todo[0][0].get("blas", "auto")) == "auto":
+            say(f"hmepol: {trainer.blas_reason}")
         try:
             trainer.train(resume=resuming)
         except Interrupted as error:  # say where each run stopped

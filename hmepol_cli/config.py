@@ -167,6 +167,9 @@ class Config:
     # units) | tf32 (TF32 products, GPU only) | auto (bf16 where the device has bfloat16
     # arithmetic and it measures faster, else float32); hmepol_cli/precision.py says more
     precision: str = "float32"
+    # Who runs the float32 layer products on a CPU: torch | openblas (NumPy's) | auto (the
+    # faster at the layer's shape on this machine); default $HMEPOL_BLAS; hmepol_cli/blas.py
+    blas: str = "auto"
     vmap: str = "auto"  # population calls: auto (vmap on cuda, a loop on cpu) | on | off
     cuda_graphs: bool = True  # on a GPU, replay each rollout's steps as one captured CUDA graph
     epochs: int = 500
@@ -222,6 +225,7 @@ class FinetuneConfig(TRPOConfig):
     horizon: int = 400  # T
     seed: int = 0
     device: str = "cpu"  # cpu | cuda | auto
+    blas: str = "auto"  # torch | openblas | auto, as in train (default $HMEPOL_BLAS)
     threads: int = 0  # torch threads; 0 = torch's default
     progress: bool = True
     output_dir: str | None = None  # null: Hydra's run directory
@@ -277,6 +281,16 @@ def check_precision(value: str, device: str) -> None:
             "precision='bf16' needs a CPU with bfloat16 units (AVX-512 BF16, AMX or Arm BF16), "
             f"and this one has none: {hardware.describe_cpu()}; its bfloat16 products run on a "
             "slow path (~10x slower than float32): use precision=float32 (or precision=auto)"
+        )
+
+
+def check_blas(value: str) -> None:
+    from hmepol_cli.blas import CHOICES, ENV
+
+    if value not in CHOICES:
+        raise ConfigError(
+            f"blas={value!r} is not allowed; choose one of: {', '.join(CHOICES)} (the default "
+            f"comes from ${ENV}, else auto)"
         )
 
 
@@ -360,6 +374,7 @@ def validate(cfg: DictConfig) -> None:
     _one_of("algo.objective", cfg.algo.objective, tuple(OBJECTIVES))
     check_device(cfg.device)
     check_precision(precision_of(cfg).name, cfg.device)
+    check_blas(cfg.get("blas", "auto"))
     _one_of("vmap", cfg.vmap, ("auto", "on", "off"))
     _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
     _one_of("algo.backtracking", cfg.algo.backtracking, BACKTRACKING)

@@ -26,7 +26,7 @@ import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from hmepol_cli import mepol
+from hmepol_cli import blas, mepol
 from hmepol_cli.alarms import MemberAlarms
 from hmepol_cli.envs import make_world
 from hmepol_cli.errors import RunDirError
@@ -103,6 +103,14 @@ class Trainer:
         for member_cfg in cfgs:
             set_random_seed(member_cfg.seed)  # each member's initial weights, as its own run
             policies.append(make_policy(cfg.policy, self.world.state_dim, self.world.action_dim))
+        # Who runs the float32 layer products (auto: the faster at an epoch's shape, here)
+        self.blas, self.blas_reason = blas.configure(
+            str(cfg.get("blas", "auto")),
+            self.device.type,
+            self.dtype,
+            int(cfg.algo.trajectories) * int(cfg.algo.horizon) // int(cfg.algo.batch_size),
+            blas.widest_layer(policies[0]),
+        )
         vectorize = {"auto": "auto", "on": True, "off": False}[cfg.vmap]
         self.population = PolicyPopulation(policies, vectorize).to(self.device, self.dtype)
         self.optimizer = PopulationAdam(self.population.params)
@@ -181,6 +189,7 @@ class Trainer:
                 **{"wind": None, "env_id": None, **self.world.facts(s)},
                 epochs=int(self.cfg.epochs),
                 precision=self.precision.name,
+                blas=self.blas,
                 epochs_done=int(member.directory.info().get("epochs_done", 0)),
                 config_names=list(self.world.configuration_names),
                 config_probs=list(self.world.configuration_probs),

@@ -8,12 +8,25 @@ from pathlib import Path
 import pytest
 import torch
 
+from hmepol_cli import blas
 from hmepol_cli.config import PolicyConfig
 from hmepol_cli.envs.slope import SlopeWorld
 from hmepol_cli.policies import make_policy
 
 # The tests use tiny tensors; extra threads only contend with the other processes on the box.
 torch.set_num_threads(1)
+
+# The library of the float32 layer products every test starts with: HMEPOL_BLAS=openblas
+# (or torch) runs the whole suite through that one (`make test` with each forced).
+SUITE_BLAS = os.environ.get("HMEPOL_BLAS") or "torch"
+
+
+@pytest.fixture(autouse=True)
+def the_suites_blas():
+    """Each test starts from the suite's library, whatever a run before it selected."""
+    blas.select(SUITE_BLAS if SUITE_BLAS != "auto" else "torch")
+    yield
+
 
 CHECKOUT = Path(__file__).resolve().parent.parent
 # What running the suite or the tools may leave in the checkout (all in .gitignore).

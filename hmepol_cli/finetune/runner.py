@@ -28,8 +28,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
+from hmepol_cli import blas
 from hmepol_cli.algorithms import SCRATCH
-from hmepol_cli.config import check_device, check_wind, parse_bptt, validate_policy
+from hmepol_cli.config import check_blas, check_device, check_wind, parse_bptt, validate_policy
 from hmepol_cli.envs import ENVIRONMENTS, World, make_world
 from hmepol_cli.envs.base import edge_rule
 from hmepol_cli.errors import ConfigError
@@ -211,6 +212,7 @@ def check_finetune(cfg: DictConfig) -> Plan:
     """Every value of a fine-tuning config checked, the world built and the targets drawn (a
     target outside the free space refused), before anything is written."""
     check_device(cfg.device)
+    check_blas(str(cfg.get("blas", "auto")))
     device = get_device(cfg.device)
     if _is_scratch(cfg.init):
         fresh = cfg.policy.copy()
@@ -287,6 +289,15 @@ def finetune(cfg: DictConfig) -> Path:
     device = get_device(cfg.device)
     if cfg.get("threads", 0) and cfg.threads > 0:
         torch.set_num_threads(int(cfg.threads))
+    choice, reason = blas.configure(
+        str(cfg.get("blas", "auto")),
+        device.type,
+        torch.float32,
+        int(cfg.episodes) * int(cfg.horizon),
+        _widest(cfg, plan),
+    )
+    if cfg.progress and str(cfg.get("blas", "auto")) == "auto":
+        print(f"hmepol: {reason}")
     out_dir = _output_dir(cfg)
     directory = RunDirectory(out_dir, cfg, kind="finetune")
     with writing([directory], device):
@@ -298,6 +309,7 @@ def finetune(cfg: DictConfig) -> Path:
             init_epoch=plan.init_epoch,
             seed=int(cfg.seed),
             epochs=int(cfg.epochs),
+            blas=choice,
             config_names=list(plan.world.configuration_names),
             config_probs=list(plan.world.configuration_probs),
         )
@@ -308,6 +320,14 @@ def finetune(cfg: DictConfig) -> Path:
         directory.update(status="finished", epochs_done=int(cfg.epochs))
     print(f"hmepol: fine-tuning returns ({len(rows)} rows) written to {out_dir / FINETUNE_CSV}")
     return out_dir
+
+
+def _widest(cfg: DictConfig, plan: Plan) -> int:
+    """The widest layer of the policy fine-tuned (the pre-trained one, or a fresh one's)."""
+    if plan.pretrained is not None:
+        return blas.widest_layer(plan.pretrained)
+    hidden = [*cfg.policy.get("hidden", []), *cfg.policy.get("encoder_hidden", [])]
+    return max((int(h) for h in hidden), default=1)
 
 
 def _run(cfg: DictConfig, plan: Plan, device: torch.device, tables: RunTables) -> list[dict]:

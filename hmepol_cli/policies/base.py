@@ -10,25 +10,33 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
+from hmepol_cli import blas
 from hmepol_cli.precision import lowered_history
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
 
 
-class OutputLinear(nn.Linear):
+class Linear(nn.Linear):
+    """``nn.Linear`` whose float32 CPU products run through the library ``blas`` selects
+    (:mod:`hmepol_cli.blas`); the same parameters, state dict and function."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return blas.linear(x, self.weight, self.bias)
+
+
+class OutputLinear(Linear):
     """The layer that gives the action mean: its product is never lowered in precision
     (``precision=bf16`` lowers the hidden layers'), so the likelihoods are computed from
     full-precision means. Its input is cast to the weights' dtype."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         with torch.autocast(x.device.type, enabled=False):
-            return F.linear(x.to(self.weight.dtype), self.weight, self.bias)
+            return blas.linear(x.to(self.weight.dtype), self.weight, self.bias)
 
 
-class HistoryLinear(nn.Linear):
+class HistoryLinear(Linear):
     """A layer whose output is (part of) the history h'_t: in full precision while the
     likelihoods run the recursion over several steps (``bptt`` > 1), where rounding would
     accumulate; a hidden layer like any other at bptt = 1, where h'_t is computed once from
@@ -38,24 +46,46 @@ class HistoryLinear(nn.Linear):
         if lowered_history():
             return super().forward(x)
         with torch.autocast(x.device.type, enabled=False):
-            return F.linear(x.to(self.weight.dtype), self.weight, self.bias)
+            return blas.linear(x.to(self.weight.dtype), self.weight, self.bias)
+
+
+class MLP(nn.Sequential):
+    """Linear layers, ReLU between them, and an optional output activation. Where OpenBLAS
+    runs the products (:func:`hmepol_cli.blas.fuses`: float32 on a CPU, no autocast, so every
+    layer kind is a plain linear layer) the Linear/ReLU layers run as one stack, row block by
+    row block (:func:`hmepol_cli.blas.mlp`); elsewhere one module after the other."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        modules = list(self)
+        if not (modules and isinstance(modules[0], Linear) and blas.fuses(x, modules[0].weight)):
+            return super().forward(x)
+        layers: list[blas.Layer] = []
+        i = 0
+        while i < len(modules) and isinstance(modules[i], Linear):
+            relu = i + 1 < len(modules) and isinstance(modules[i + 1], nn.ReLU)
+            layers.append(blas.Layer(modules[i].weight, modules[i].bias, relu))
+            i += 2 if relu else 1
+        x = blas.mlp(x, layers)
+        for module in modules[i:]:
+            x = module(x)
+        return x
 
 
 def mlp(
     sizes: list[int], out_activation: str | None = None, output: type[nn.Linear] = OutputLinear
-) -> nn.Sequential:
+) -> MLP:
     """Linear layers with ReLU between them, and ``out_activation`` (relu, tanh) after the last,
     which is of kind ``output``: :class:`OutputLinear` for an action mean,
-    :class:`HistoryLinear` for a history, ``nn.Linear`` for a hidden layer's output."""
+    :class:`HistoryLinear` for a history, :class:`Linear` for a hidden layer's output."""
     layers: list[nn.Module] = []
     for i in range(len(sizes) - 1):
-        kind = output if i == len(sizes) - 2 else nn.Linear
+        kind = output if i == len(sizes) - 2 else Linear
         layers.append(kind(sizes[i], sizes[i + 1]))
         if i < len(sizes) - 2:
             layers.append(nn.ReLU())
     if out_activation is not None:
         layers.append(ACTIVATIONS[out_activation]())
-    return nn.Sequential(*layers)
+    return MLP(*layers)
 
 
 WEIGHT_INITS = ("xavier", "torch")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from hmepol_cli.policies.base import HistoryLinear, OutputLinear, Policy, mlp
+from hmepol_cli.policies.base import HistoryLinear, Linear, OutputLinear, Policy, mlp
 
 
 class RecursivePolicy(Policy):
@@ -72,9 +72,7 @@ class TwoHeadPolicy(Policy):
     ):
         super().__init__(state_dim, action_dim, **init)
         self.history_size = history_size
-        self.trunk = mlp(
-            [state_dim + history_size, *hidden], out_activation="relu", output=nn.Linear
-        )
+        self.trunk = mlp([state_dim + history_size, *hidden], out_activation="relu", output=Linear)
         self.mean_head = nn.Sequential(OutputLinear(hidden[-1], action_dim))
         self.history_head = mlp(
             [hidden[-1], history_size], out_activation=encoder_activation, output=HistoryLinear

@@ -25,6 +25,7 @@ SOURCE = Path(__file__).resolve().parents[2]  # the checkout hmepol_cli/ lies in
 RESUMABLE_KEYS = (
     "epochs",
     "device",
+    "blas",  # the same numbers to float32 rounding
     "progress",
     "threads",
     "eval.every",
