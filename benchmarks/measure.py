@@ -33,28 +33,56 @@ def _fastest(fn: Callable[[], object], min_seconds: float) -> float:
     return best
 
 
-def matmul_flops(size: int = 2048, min_seconds: float = 0.5) -> float:
-    """float32 FLOP/s of torch.matmul on two (size, size) matrices, at torch's thread count."""
+BACKENDS = ("torch", "openblas")  # the libraries a float32 product can run through (blas=)
+
+
+def _product(backend: str):
+    """a @ b through ``backend``: torch.matmul, or NumPy's matmul (OpenBLAS) on the same memory."""
+    if backend == "torch":
+        return torch.matmul
+    if backend == "openblas":
+        return lambda a, b: torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
+    raise ValueError(f"backend={backend!r}: choose one of {BACKENDS}")
+
+
+def matmul_flops(size: int = 2048, min_seconds: float = 0.5, backend: str = "torch") -> float:
+    """float32 FLOP/s of a (size, size) @ (size, size) product through ``backend``, at its
+    thread count."""
     a, b = torch.randn(size, size), torch.randn(size, size)
-    return 2 * size**3 / _fastest(lambda: torch.matmul(a, b), min_seconds)
+    product = _product(backend)
+    return 2 * size**3 / _fastest(lambda: product(a, b), min_seconds)
 
 
 def layer_matmul_flops(
-    rows: int, width: int = 300, min_seconds: float = 0.5, dtype: torch.dtype = torch.float32
+    rows: int,
+    width: int = 300,
+    min_seconds: float = 0.5,
+    dtype: torch.dtype = torch.float32,
+    backend: str = "torch",
 ) -> float:
     """FLOP/s (in ``dtype``) of the three matmuls of a hidden (width x width) Linear layer over
     ``rows`` particles, the shapes an off-policy iteration multiplies: forward x W^T, backward
-    g W and g^T x."""
+    g W and g^T x, through ``backend`` (openblas: float32 only)."""
     x, g, w = (
         torch.randn(*shape).to(dtype) for shape in ((rows, width), (rows, width), (width, width))
     )
+    product = _product(backend)
 
     def layer() -> None:
-        torch.matmul(x, w.T)
-        torch.matmul(g, w)
-        torch.matmul(g.T, x)
+        product(x, w.T)
+        product(g, w)
+        product(g.T, x)
 
     return 3 * 2 * rows * width * width / _fastest(layer, min_seconds)
+
+
+def best_rates(rows: int, before: dict | None = None) -> tuple[dict, dict]:
+    """float32 FLOP/s per backend at the layer's shapes and at 2048² (the faster of this
+    measurement and ``before``'s, taken on the other side of an epoch). -> (layer, square)"""
+    before = before or ({}, {})
+    layer = {b: max(layer_matmul_flops(rows, backend=b), before[0].get(b, 0.0)) for b in BACKENDS}
+    square = {b: max(matmul_flops(backend=b), before[1].get(b, 0.0)) for b in BACKENDS}
+    return layer, square
 
 
 def forward_flops(policy: torch.nn.Module) -> int:

@@ -35,15 +35,15 @@ from omegaconf import DictConfig  # noqa: E402
 
 from benchmarks import baseline  # noqa: E402
 from benchmarks.measure import (  # noqa: E402
+    best_rates,
     best_time,
     brute_force_seconds,
     cpu_name,
     forward_flops,
     layer_matmul_flops,
-    matmul_flops,
 )
 from benchmarks.results import OFF_ITERS, Row, markdown, targets  # noqa: E402
-from hmepol_cli import estimators, mepol  # noqa: E402
+from hmepol_cli import blas, estimators, mepol  # noqa: E402
 from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
 from hmepol_cli.config import validate  # noqa: E402
 from hmepol_cli.envs import make_world  # noqa: E402
@@ -77,7 +77,9 @@ def thesis_config(env: str, algo: str, overrides: list[str], iters: int = OFF_IT
 
 
 def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> Row:
-    trainer = Trainer(thesis_config(env, algo, args.override), work / f"{env}-{algo}")
+    overrides = [f"blas={args.blas}", *args.override]
+    trainer = Trainer(thesis_config(env, algo, overrides), work / f"{env}-{algo}")
+    print(f"{env} {algo}: {trainer.blas_reason}", flush=True)
     a, k = trainer.cfg.algo, trainer.cfg.estimator.k
     policy, generator = trainer.population.member(0), trainer.members[0].generator
     row = Row(env, algo, a.trajectories * a.horizon, forward_flops(policy))
@@ -108,15 +110,17 @@ def bench_setting(env: str, algo: str, args: argparse.Namespace, work: Path) -> 
         particles, k, args.brute_force_batches
     )
 
-    layer_before, square_before = layer_matmul_flops(row.particles), matmul_flops()
+    before = best_rates(row.particles)
     (stats,) = trainer.epoch()
-    row.layer_matmul_flops = max(layer_before, layer_matmul_flops(row.particles))
-    row.square_matmul_flops = max(square_before, matmul_flops())
+    row.layer_rates, row.square_rates = best_rates(row.particles, before)
+    row.blas = trainer.blas
+    row.layer_matmul_flops = row.layer_rates[row.blas]
+    row.square_matmul_flops = row.square_rates[row.blas]
     row.collect_s, row.neighbours_s = stats.seconds["collect"], stats.seconds["neighbours"]
     row.update_s, row.epoch_s = stats.seconds["update"], stats.seconds["epoch"]
     row.off_iters = stats.update.off_iters
     if "bf16" in args.precisions:
-        cfg = thesis_config(env, algo, [*args.override, "precision=bf16"])
+        cfg = thesis_config(env, algo, [*overrides, "precision=bf16"])
         (lowered,) = Trainer(cfg, work / f"{env}-{algo}-bf16").epoch()
         row.bf16_epoch_s, row.bf16_update_s = lowered.seconds["epoch"], lowered.seconds["update"]
         row.bf16_off_iters = lowered.update.off_iters
@@ -209,6 +213,12 @@ def main(argv: list[str] | None = None) -> None:
         "--override", nargs="*", default=[], help="extra Hydra overrides (smoke runs)"
     )
     parser.add_argument(
+        "--blas",
+        default="auto",
+        choices=("auto", "torch", "openblas"),
+        help="the library of the float32 layer products (default: auto, as a run chooses)",
+    )
+    parser.add_argument(
         "--precisions",
         nargs="+",
         default=None,
@@ -223,6 +233,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"bf16 not measured: {cpu_name()} (--precisions float32 bf16 measures it)")
     if args.threads:
         torch.set_num_threads(args.threads)
+    blas.limit_openblas_threads(torch.get_num_threads())  # both libraries at torch's threads
     start, load_before = time.perf_counter(), os.getloadavg()
     for env in args.envs:  # the plain loop must simulate the same walls as the batched world
         world = make_world(thesis_config(env, "mepol", args.override).env)
@@ -241,6 +252,8 @@ def main(argv: list[str] | None = None) -> None:
         "machine": cpu_name(),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
+        "blas": ", ".join(sorted({r.blas for r in rows})) or args.blas,
+        "openblas": " ".join(str(v) for v in blas.openblas_info().values()),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "load_before": " ".join(f"{x:.1f}" for x in load_before),
         "load_after": " ".join(f"{x:.1f}" for x in os.getloadavg()),

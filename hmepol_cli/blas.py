@@ -150,7 +150,6 @@ class _OpenBLASStack(torch.autograd.Function):
     def forward(ctx, x: torch.Tensor, relus: tuple[bool, ...], *params: torch.Tensor):
         weights, biases = params[0::2], params[1::2]
         n = x.shape[0]
-        x = x.contiguous()
         outputs = [torch.empty(n, w.shape[0], dtype=x.dtype) for w in weights]
         transposed = [_np(w).T for w in weights]
         biases = [b.detach() for b in biases]
@@ -209,13 +208,24 @@ class _OpenBLASStack(torch.autograd.Function):
 
 def _differentiable_grads(ctx, x, params, relus, grad):
     """The backward pass as torch operations on the saved inputs, so that it has a graph of its
-    own (second derivatives, as in fine-tuning's Fisher-vector products)."""
-    needs = (ctx.needs_input_grad[0], *ctx.needs_input_grad[2:])
-    layers = [Layer(params[2 * i], params[2 * i + 1], r) for i, r in enumerate(relus)]
-    out = _torch_stack(x, layers)
-    chosen = [t for t, need in zip((x, *params), needs, strict=True) if need]
-    found = iter(torch.autograd.grad(out, chosen, grad, create_graph=True))
-    return [next(found) if need else None for need in needs]
+    own (second derivatives, as in fine-tuning's Fisher-vector products): the forward pass
+    recomputed, then the chain rule written out (no nested autograd call, which would walk the
+    graph below x again at every layer of a recursion)."""
+    weights, biases = params[0::2], params[1::2]
+    inputs = [x]
+    for weight, bias, relu in zip(weights, biases, relus, strict=True):
+        h = F.linear(inputs[-1], weight, bias)
+        inputs.append(torch.relu(h) if relu else h)
+    grads: list[torch.Tensor | None] = [None] * (2 * len(relus))
+    g = grad
+    for i in reversed(range(len(relus))):
+        if relus[i]:
+            g = g * (inputs[i + 1] > 0).to(g.dtype)
+        grads[2 * i] = g.transpose(0, 1) @ inputs[i]
+        grads[2 * i + 1] = g.sum(0)
+        g = g @ weights[i]
+    needs = ctx.needs_input_grad
+    return [g if needs[0] else None, *(t if needs[2 + j] else None for j, t in enumerate(grads))]
 
 
 def mlp(x: torch.Tensor, layers: Sequence[Layer]) -> torch.Tensor:
@@ -224,7 +234,7 @@ def mlp(x: torch.Tensor, layers: Sequence[Layer]) -> torch.Tensor:
     if not layers or not fuses(x, layers[0].weight) or any(la.bias is None for la in layers):
         return _torch_stack(x, layers)
     lead = x.shape[:-1]
-    rows = x.reshape(-1, x.shape[-1])
+    rows = x.reshape(-1, x.shape[-1]).contiguous()  # outside the function: keeps its graph
     params = [p for la in layers for p in (la.weight, la.bias)]
     out = _OpenBLASStack.apply(rows, tuple(bool(la.relu) for la in layers), *params)
     return out.reshape(*lead, out.shape[-1])

@@ -224,16 +224,17 @@ def test_every_policy_kind_gives_torchs_likelihoods_and_gradients(kind, bptt):
         assert grad_error < 1e-4, (backend, errors)
 
 
-def test_second_derivatives_equal_torchs():
+@pytest.mark.parametrize("bptt", [1, None])
+def test_second_derivatives_equal_torchs(bptt):
     """Fine-tuning's Fisher-vector products differentiate a gradient: through OpenBLAS the
-    Hessian-vector product equals torch's to float32 rounding."""
-    policy, (states, actions, histories, _) = policy_case("recursive", 1)
+    Hessian-vector product equals torch's to float32 rounding, through a whole recursion too."""
+    policy, (states, actions, histories, _) = policy_case("recursive", bptt)
     params = list(policy.parameters())
     vector = [torch.randn_like(p) for p in params]
 
     def hvp(backend):
         with blas.using(backend):
-            log_p = policy.log_prob(states, actions, histories, 1)
+            log_p = policy.log_prob(states, actions, histories, bptt)
             grads = torch.autograd.grad(log_p.sum(), params, create_graph=True)
             dot = sum((g * v).sum() for g, v in zip(grads, vector, strict=True))
             return torch.autograd.grad(dot, params)

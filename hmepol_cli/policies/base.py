@@ -57,7 +57,12 @@ class MLP(nn.Sequential):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         modules = list(self)
-        if not (modules and isinstance(modules[0], Linear) and blas.fuses(x, modules[0].weight)):
+        if not (
+            modules
+            and isinstance(modules[0], Linear)
+            and blas.fuses(x, modules[0].weight)
+            and not any(m._forward_hooks or m._forward_pre_hooks for m in modules)
+        ):  # hooks on a layer see its call: then one layer after the other
             return super().forward(x)
         layers: list[blas.Layer] = []
         i = 0
