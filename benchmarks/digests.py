@@ -11,8 +11,10 @@ Each line is ``<case> <sha256 of the numbers>``: every column of epochs.csv and 
 the wall-clock ones, and the final policy weights, at full precision. Digests are equal only on
 the same machine and torch build (the same seed and config give the same numbers there).
 ``extra`` overrides apply to every case (e.g. ``env.edge=mirror``); ``--only gym`` runs the
-cases whose label holds "gym". Run it from the repository root (the Gymnasium cases import
-tests/gym_toy.py).
+cases whose label holds "gym". ``--blas torch,openblas`` runs every case through each library
+of the float32 products in turn, a baseline per library (its lines end in ``[torch]``,
+``[openblas]``): the two libraries round differently, so only a library's own lines compare.
+Run it from the repository root (the Gymnasium cases import tests/gym_toy.py).
 """
 
 from __future__ import annotations
@@ -109,7 +111,11 @@ def finetune_digest(init: Path | None, workdir: Path, extra: list[str]) -> str:
         "fisher_fraction=0.5",
         "progress=false",
         f"output_dir={workdir / 'finetune'}",
-        *([] if init is not None else ["policy.hidden=[16,16]", *extra]),
+        *(
+            [o for o in extra if o.startswith("blas=")]  # a pre-trained policy keeps its own
+            if init is not None
+            else ["policy.hidden=[16,16]", *extra]
+        ),
     ]
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
@@ -157,22 +163,39 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--quick", action="store_true", help="one policy per algorithm")
     parser.add_argument("--drop", default="", help="columns to leave out, comma-separated")
     parser.add_argument("--only", default="", help="only the cases whose label holds this text")
+    parser.add_argument(
+        "--blas",
+        default="torch",
+        help="libraries of the float32 products, comma-separated (torch, openblas): each case "
+        "once per library, its lines labelled with it when there are several",
+    )
     ns = parser.parse_args(argv)
+    libraries = [b for b in ns.blas.split(",") if b]
+    if not libraries or any(b not in ("torch", "openblas") for b in libraries):
+        parser.error(f"--blas {ns.blas!r}: give torch, openblas or torch,openblas")
     DROPPED.extend(c for c in ns.drop.split(",") if c)
     torch.set_num_threads(1)
+    for library in libraries:
+        tag = f" [{library}]" if len(libraries) > 1 else ""
+        _digests(ns, [*ns.extra, f"blas={library}"], tag)
+
+
+def _digests(ns: argparse.Namespace, extra: list[str], tag: str) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        for i, (label, overrides, seeds) in enumerate(cases(ns.quick, ns.extra)):
+        for i, (label, overrides, seeds) in enumerate(cases(ns.quick, extra)):
             if ns.only in label:
-                print(f"{label} {train_digest(overrides, root / f'case{i}', seeds)}", flush=True)
+                digest = train_digest(overrides, root / f"case{i}", seeds)
+                print(f"{label}{tag} {digest}", flush=True)
         init = root / "case0" / "seed0"  # slope, mepol, markov
         if ns.only in "finetune pretrained":
             if not init.exists():
-                train_digest(cases(True, ns.extra)[0][1], root / "case0")
-            digest = finetune_digest(init, root / "ft0", ns.extra)
-            print(f"finetune pretrained {digest}", flush=True)
+                train_digest(cases(True, extra)[0][1], root / "case0")
+            digest = finetune_digest(init, root / "ft0", extra)
+            print(f"finetune pretrained{tag} {digest}", flush=True)
         if ns.only in "finetune scratch":
-            print(f"finetune scratch {finetune_digest(None, root / 'ft1', [])}", flush=True)
+            digest = finetune_digest(None, root / "ft1", extra[-1:])
+            print(f"finetune scratch{tag} {digest}", flush=True)
 
 
 if __name__ == "__main__":

@@ -337,9 +337,9 @@ against:
 **Off-policy iteration** (forward + backward of the IW objective, KL, Adam step, trust-region \
 bookkeeping; the mean over the {first.off_iters} iterations of the epoch below) against float32 \
 products through the epoch's library, measured just before and after that epoch: at the \
-shapes of a hidden 300 x 300 layer over all particles (forward x W^T, backward g W and g^T x: the representative size) and at \
-2048². FLOPs counted analytically: 2 x in x out per Linear per particle forward, x3 for \
-forward + backward:
+shapes of a hidden 300 x 300 layer over all particles (forward x W^T, backward g W and g^T x: \
+the representative size) and at 2048². FLOPs counted analytically: 2 x in x out per Linear \
+per particle forward, x3 for forward + backward:
 
 {iteration}
 
