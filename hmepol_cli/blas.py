@@ -355,7 +355,6 @@ def resolve(
     choice, seconds = auto_choice(rows, width)
     ratio = seconds["torch"] / seconds["openblas"]
     return choice, (
-        f"blas=auto chose {choice}: a {rows} x {width} layer's products measured "
-        f"{ratio:.2f}x faster through OpenBLAS than through torch here (OpenBLAS from "
-        f"{AUTO_MARGIN}x)"
+        f"blas=auto chose {choice}: a {rows} x {width} layer's products ran {ratio:.2f}x as "
+        f"fast through OpenBLAS as through torch here (OpenBLAS from {AUTO_MARGIN}x)"
     )
