@@ -15,8 +15,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
-from benchmarks.baseline import slide_path
-from benchmarks.worlds import edge_distance
 from hmepol_cli.envs import ENVIRONMENTS, make_world
 from hmepol_cli.envs.base import EDGE_RULES, Box, NavigationWorld
 from hmepol_cli.envs.corridor import EAST_STUB, ROOM, WEST_STUB, CorridorWorld
@@ -25,6 +23,7 @@ from hmepol_cli.envs.gym_api import ENV_IDS, NavigationEnv, NavigationVectorEnv,
 from hmepol_cli.envs.multigrid import MultiGridWorld
 from hmepol_cli.envs.render import draw_world, force_arrows, show_world
 from hmepol_cli.envs.slope import SlopeWorld
+from tests.reference_edges import edge_distance, slide_path
 
 CONF_ENV = Path(__file__).resolve().parents[1] / "conf" / "env"
 WORLDS: dict[str, NavigationWorld] = {

@@ -8,7 +8,7 @@ the remaining steps as particles; now they are no particles (as the reference, w
 ``real_traj_lengths`` drops them). This prints the kNN entropy (eq. 2.6) of the same states both
 ways, and what the repeated copies do to it::
 
-    python -m benchmarks.gym_particles
+    python -m investigations.gym_particles
 """
 
 from __future__ import annotations
