@@ -74,8 +74,8 @@ reproduce-quick-multigrid:
 	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/multigrid
 
 # RESULTS.md's figures and tables, rebuilt from the runs kept in docs/results/ (about a minute):
-# the chapter 5 runs, the collapse study (issue 26), the float32 / bf16 curves (issue 22) and the
-# decisive experiment (issue 33): its pre-registered tables, rewritten in RESULTS.md between the
+# the chapter 5 runs, the collapse study, the float32 / bf16 curves and the
+# decisive experiment: its pre-registered tables, rewritten in RESULTS.md between the
 # "decisive tables" markers, and its curves per arm in docs/results/decisive/figures, interim
 # while its runs go on (`hmepol report` skips unfinished runs, so it draws none of them yet).
 results:

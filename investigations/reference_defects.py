@@ -1,6 +1,6 @@
 """Where the initial kNN entropy differs from the reference's: its three defects, one at a time.
 
-Side by side with the public reference implementation of the worlds ([22]; REFERENCE_WORLDS.md)
+Side by side with the public reference implementation of the worlds ([22]; docs/worlds.md)
 on identical actions, our edge rule matches where it matters, yet the initial kNN entropy sits
 ~0.1-0.14 nats below the reference's. What is left is the reference's own behaviour, which this
 project does not copy. Here each of its three defects is emulated as a switch on top of our

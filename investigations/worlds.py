@@ -1,4 +1,4 @@
-"""How the arena's edge rule shapes a zero-mean policy's visitation (REFERENCE_WORLDS.md).
+"""How the arena's edge rule shapes a zero-mean policy's visitation (docs/worlds.md).
 
 Under the reference's start policy (zero-mean Gaussian actions, std exp(-1.5) = 0.22; 100
 trajectories x 400 steps per configuration), for each edge rule: the share of steps in the

@@ -28,7 +28,7 @@ DEFECTS = ("leave", "tunnel", "corner")
 def slide_path(
     p: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray, rounds: int = EDGE_ROUNDS
 ) -> list[np.ndarray] | None:
-    """The points a move passes under the reference's edge rule (REFERENCE_WORLDS.md): its
+    """The points a move passes under the reference's edge rule (docs/worlds.md): its
     start, every point where it crosses an edge, its end; None if it is still turning after
     ``rounds`` crossings. At a crossing the rest of the move, outward part n and part t along
     the edge, becomes |n| along the edge in the direction of t and |t| back inside (t = 0:

@@ -184,7 +184,7 @@ def test_a_step_displaces_by_the_clipped_action_plus_the_force_in_open_space():
     assert torch.allclose(new, torch.tensor([[0.7, 0.75]]))
 
 
-# REFERENCE_WORLDS.md's worked examples (multigrid config 7: open floor, no slope): from, move,
+# docs/worlds.md's worked examples (multigrid config 7: open floor, no slope): from, move,
 # where the reference lands, where a mirror would. The last one slides into the north-west
 # corner and is turned twice; the page rounds it to 4 decimals, worked out by hand: the move
 # crosses x = -1 at 0.15 of its length, at (-1, 0.9045); its rest (-0.17, 0.0255) becomes
@@ -216,7 +216,7 @@ def test_the_edge_rules_reproduce_the_reference_pages_worked_examples(edge, colu
 
 
 def test_the_slide_keeps_agents_pushed_into_an_edge_as_close_as_the_reference_does():
-    """REFERENCE_WORLDS.md: agents pushed steadily into an edge stay about 0.04 from it on
+    """docs/worlds.md: agents pushed steadily into an edge stay about 0.04 from it on
     average under the reference's rule, about 0.09 under a mirror."""
     slide = edge_distance(MultiGridWorld().to("cpu", torch.float64))
     mirror = edge_distance(MultiGridWorld(edge="mirror").to("cpu", torch.float64))
@@ -253,7 +253,8 @@ def test_a_push_back_into_a_wall_leaves_the_agent_where_it_was():
 
 
 # ---------------------------------------------------------------- layouts
-# REFERENCE_WORLDS.md, verbatim: '#' wall, '.' free; first row north, first column west.
+# The reference implementation's layouts, verbatim: '#' wall, '.' free; first row north, first
+# column west (docs/worlds.md).
 REFERENCE_LAYOUTS = """
 config 0          config 1          config 2          config 3          config 4
 ....##....        ......##..        ....##....        ..........        ..........
@@ -400,7 +401,7 @@ def test_the_corridor_is_most_of_the_corridor_worlds_free_space():
 
 
 # ---------------------------------------------------------------- slopes
-# REFERENCE_WORLDS.md: (direction, magnitude mean, upper truncation, north half only).
+# docs/worlds.md: (direction, magnitude mean, upper truncation, north half only).
 NORTH_HALF_ONLY = True
 REFERENCE_SLOPES = {
     ("slope", 0): ((0.0, -1.0), 0.1, 0.2, NORTH_HALF_ONLY),
@@ -463,7 +464,7 @@ def zero_mean_rollout(world, config: int, std: float = 0.22, n: int = 100, steps
 
 
 def test_the_frequent_slope_carries_agents_away_and_the_rare_one_pins_them():
-    """REFERENCE_WORLDS.md: under a zero-mean policy of std 0.22, config 0 (p = 0.8) spends
+    """docs/worlds.md: under a zero-mean policy of std 0.22, config 0 (p = 0.8) spends
     ~90% of the steps in the southern half, config 1 (p = 0.2) stays in the northern half."""
     world = WORLDS["slope"]
     assert world.configuration_probs == (0.8, 0.2)

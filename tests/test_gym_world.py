@@ -1,4 +1,4 @@
-"""Any Gymnasium environment as a world (issue 15): stepping, episodes that end early, the
+"""Any Gymnasium environment as a world: stepping, episodes that end early, the
 entropy on the chosen features, one configuration per mini-batch, seeds, workers, resume,
 evaluation's projection and fine-tuning on the environment's own reward."""
 

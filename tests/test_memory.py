@@ -1,4 +1,4 @@
-"""Memory is necessary (issue 3): a cue seen only at the first step decides where to go later.
+"""Memory is necessary: a cue seen only at the first step decides where to go later.
 
 The world is :class:`CueCorridorWorld`: the configuration shows only in the start position (top
 pad: go left; bottom pad: go right), the first step puts every agent on the origin whatever it

@@ -78,7 +78,7 @@ def test_the_reference_edge_rule_agrees_with_ours_except_in_the_northern_corners
 
 @pytest.mark.parametrize(
     ("start", "move_", "lands"),
-    [  # REFERENCE_WORLDS.md, worked examples of the reference's edge rule
+    [  # docs/worlds.md, worked examples of the reference's edge rule
         ((-0.5, 0.95), (0.05, 0.2), (-0.3375, 0.9625)),
         ((-0.5, 0.95), (-0.05, 0.2), (-0.6625, 0.9625)),
         ((-0.5, 0.95), (0.2, 0.2), (-0.3, 0.85)),
