@@ -94,7 +94,7 @@ results:
 # alpha-Mepol (4) and HMepol (4): six programs. DEVICE=cuda on a GPU, or
 # LAUNCHER=population_slurm for one SLURM job per population; DRY=true prints the populations.
 # Expected on a 2-core CPU (from `make bench`'s seconds per epoch, 30 off-policy iterations an
-# epoch): ~26 days; the trust region stops many epochs early, so less (README, Reproducing).
+# epoch): ~26 days; the trust region stops many epochs early, so less (docs/reproducing.md).
 FULL_DIR ?= outputs/full
 DEVICE ?= cuda
 LAUNCHER ?= population

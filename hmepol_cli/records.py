@@ -1,7 +1,7 @@
 """What an epoch of Algorithm 3.1 records (:class:`EpochStats`, its :class:`UpdateResult` and,
 with diagnostics, a :class:`StepRecord` per off-policy step tried), and those records as the rows
 its run directory's tables get: one row of epochs.csv, the mini-batches' rows of batches.csv and
-the off-policy steps' rows of steps.csv (README, What a run writes, says when each column is
+the off-policy steps' rows of steps.csv (docs/run-directory.md says when each column is
 measured)."""
 
 from __future__ import annotations
