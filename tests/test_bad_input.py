@@ -91,6 +91,7 @@ def assert_one_line(code: int, text: str, expected: str) -> None:
 
 
 @pytest.mark.parametrize("args, expected", TRAIN, ids=lambda a: a[0] if isinstance(a, list) else "")
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_train_refuses_a_bad_value_in_one_line_and_writes_nothing(tmp_path, capsys, args, expected):
     run_dir = tmp_path / "run"
     code, text = run(capsys, "train", *args, f"hydra.run.dir={run_dir}")

@@ -504,6 +504,7 @@ DRIVES = [  # (world, config, action, noise): straight into a wall, an edge or a
 
 @pytest.mark.parametrize("edge", EDGE_RULES)
 @pytest.mark.parametrize("name, config, action, noise", DRIVES)
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_agents_driven_into_walls_edges_and_corners_do_not_pile_up(
     name, config, action, noise, edge
 ):
@@ -583,6 +584,7 @@ def _corridor_run(
 
 
 @pytest.mark.parametrize("config, downwind", [(0, WEST_STUB), (1, EAST_STUB)])
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_pushing_into_the_downwind_entrance_never_gets_past_it(config, downwind):
     world = CorridorWorld(wind=0.4)
     path = _corridor_run(world, config, downwind, steps=300, push=-1)
@@ -788,6 +790,7 @@ def test_show_world_saves_one_panel_per_configuration(tmp_path):
 
 # ---------------------------------------------------------------- estimator on the worlds
 @pytest.mark.parametrize("name, batch_size", [("slope", 5), ("multigrid", 5), ("corridor", 1)])
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_no_ball_volume_hits_the_floor_on_the_initial_policy(name, batch_size):
     """The thesis' mini-batches (B x T particles, k = 30) of the default initial policy: no
     particle's ball volume is at the estimator's floor (coincident particles would be)."""
