@@ -41,7 +41,7 @@ PYTEST = $(PYTHON) -m pytest -n $(TEST_WORKERS) --dist loadgroup
 test: install
 	$(PYTEST)
 
-# All but the end-to-end runs of the installed command.
+# All but the tests marked slow (end-to-end runs of the command, the heaviest simulations).
 test-fast: install
 	$(PYTEST) -m "not slow"
 
