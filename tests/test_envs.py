@@ -107,7 +107,7 @@ def path_samples(world, start: np.ndarray, delta: np.ndarray, n: int = 2001) -> 
 
 def expected_moves(world, p: np.ndarray, d: np.ndarray):
     """Where each move ends under the world's edge rule if nothing blocks it, and points along
-    its path, from implementations that are not base.py's (benchmarks.baseline's scalar slide,
+    its path, from implementations that are not base.py's (tests/reference_edges.py's scalar slide,
     fold above). -> (ends (N, 2), samples (N, n, 2), resolved (N,) bool)"""
     if world.edge == "mirror":
         return fold_xy(world, p + d), path_samples(world, p, d), np.ones(len(p), dtype=bool)
