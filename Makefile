@@ -41,7 +41,7 @@ PYTEST = $(PYTHON) -m pytest -n $(TEST_WORKERS) --dist loadgroup
 test: install
 	$(PYTEST)
 
-# All but the end-to-end runs of the installed command.
+# All but the tests marked slow (end-to-end runs of the command, the heaviest simulations).
 test-fast: install
 	$(PYTEST) -m "not slow"
 
@@ -74,8 +74,8 @@ reproduce-quick-multigrid:
 	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/multigrid
 
 # RESULTS.md's figures and tables, rebuilt from the runs kept in docs/results/ (about a minute):
-# the chapter 5 runs, the collapse study (issue 26), the float32 / bf16 curves (issue 22) and the
-# decisive experiment (issue 33): its pre-registered tables, rewritten in RESULTS.md between the
+# the chapter 5 runs, the collapse study, the float32 / bf16 curves and the
+# decisive experiment: its pre-registered tables, rewritten in RESULTS.md between the
 # "decisive tables" markers, and its curves per arm in docs/results/decisive/figures, interim
 # while its runs go on (`hmepol report` skips unfinished runs, so it draws none of them yet).
 results:
@@ -94,7 +94,7 @@ results:
 # alpha-Mepol (4) and HMepol (4): six programs. DEVICE=cuda on a GPU, or
 # LAUNCHER=population_slurm for one SLURM job per population; DRY=true prints the populations.
 # Expected on a 2-core CPU (from `make bench`'s seconds per epoch, 30 off-policy iterations an
-# epoch): ~26 days; the trust region stops many epochs early, so less (README, Reproducing).
+# epoch): ~26 days; the trust region stops many epochs early, so less (docs/reproducing.md).
 FULL_DIR ?= outputs/full
 DEVICE ?= cuda
 LAUNCHER ?= population

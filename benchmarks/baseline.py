@@ -15,12 +15,13 @@ import numpy as np
 import torch
 from scipy.special import ndtr, ndtri
 
-from hmepol_cli.envs.base import EDGE_ROUNDS, NavigationWorld
+from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.envs.corridor import CorridorWorld
 from hmepol_cli.envs.grid import SLOPE_STD, GridWorld
 from hmepol_cli.policies.base import Policy
 from hmepol_cli.policies.markov import MarkovPolicy
 from hmepol_cli.policies.recursive import RecursivePolicy
+from tests.reference_edges import slide_path
 
 
 class PlainWorld:
@@ -124,45 +125,6 @@ class PlainWorld:
                 r = np.mod(p[axis] - lo, 2 * (hi - lo))
                 out[axis] = lo + (2 * (hi - lo) - r if r > hi - lo else r)
         return out
-
-
-def slide_path(
-    p: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray, rounds: int = EDGE_ROUNDS
-) -> list[np.ndarray] | None:
-    """The points a move passes under the reference's edge rule (REFERENCE_WORLDS.md): its
-    start, every point where it crosses an edge, its end; None if it is still turning after
-    ``rounds`` crossings. At a crossing the rest of the move, outward part n and part t along
-    the edge, becomes |n| along the edge in the direction of t and |t| back inside (t = 0:
-    straight back by |n|); a point exactly on the edge counts as beyond it."""
-    p, d = np.array(p, dtype=float), np.array(d, dtype=float)
-    points = [p.copy()]
-    for _ in range(rounds):
-        crossing = None  # (fraction of d, axis) of the first edge ahead
-        for axis in (0, 1):
-            if d[axis] == 0:
-                continue
-            edge = hi[axis] if d[axis] > 0 else lo[axis]
-            fraction = max((edge - p[axis]) / d[axis], 0.0)
-            if fraction <= 1 and (crossing is None or fraction < crossing[0]):
-                crossing = (fraction, axis)
-        if crossing is None:
-            points.append(p + d)
-            return points
-        fraction, axis = crossing
-        outward = 1.0 if d[axis] > 0 else -1.0
-        p = p + fraction * d
-        p[axis] = hi[axis] if outward > 0 else lo[axis]
-        points.append(p.copy())
-        rest = (1 - fraction) * d
-        n, t = abs(rest[axis]), rest[1 - axis]
-        d = np.zeros(2)
-        if t == 0:
-            d[axis] = -outward * n
-        else:
-            d[axis], d[1 - axis] = -outward * abs(t), np.sign(t) * n
-        if not d.any():
-            return points
-    return None
 
 
 def touches(p: np.ndarray, d: np.ndarray, boxes: np.ndarray) -> bool:

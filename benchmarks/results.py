@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 OFF_ITERS = 30  # off-policy iterations of a measured epoch (the thesis' max_off_iters)
-# What issue 7 asks of this machine.
+# What the speed benchmark asks of this machine.
 TARGETS = {
     "collection_ratio": 50.0,  # steps/s against the plain per-step loop, at least
     "neighbour_seconds": 0.5,  # kdtree search per epoch, at most

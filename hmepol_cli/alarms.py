@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from hmepol_cli.mepol import EpochStats
+from hmepol_cli.records import EpochStats
 
 log = logging.getLogger("hmepol")
 

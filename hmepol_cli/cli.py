@@ -3,7 +3,7 @@
 ``main`` takes the subcommand from argv, checks every config the command would run before
 anything is written (:mod:`hmepol_cli.checks`, with Hydra's compose API), then hands the
 arguments to a ``@hydra.main`` app, so single runs, ``--cfg job``, ``-m`` and launchers all
-keep working (STYLE.md, Hydra facts). Mistakes of input are one line (exit 2); a run whose
+keep working (Hydra facts). Mistakes of input are one line (exit 2); a run whose
 numbers stop making sense is recorded as failed and the command exits 1; anything else is a bug
 and keeps its traceback.
 """

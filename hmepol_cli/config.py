@@ -63,7 +63,7 @@ class AlgoConfig:
     # Which likelihoods the trust region's KL (eq. 2.8) is computed from: "gradient", those the
     # gradient uses (policy.bptt; the thesis), or "exact", recomputed over the whole history.
     trust_region: str = "gradient"
-    # Ours (issue 26, question 3): "epoch" starts every epoch's off-policy loop with fresh Adam
+    # Ours (from the collapse study): "epoch" starts every epoch's off-policy loop with fresh Adam
     # moments and step count; null (the thesis and the reference) keeps one Adam for the run.
     adam_reset: str | None = None
 
@@ -76,7 +76,7 @@ class PolicyConfig:
     history_size: int = 100  # length of h'_t
     encoder_activation: str = "relu"  # output of g: relu (thesis) | tanh (bounded history)
     bptt: str | None = "1"  # 1 (thesis) | n (truncated) | full; fine-tuning: null = the run's
-    # The reference start for these worlds (REFERENCE_WORLDS.md): std 0.22, about the action bound.
+    # The reference start for these worlds (docs/worlds.md): std 0.22, about the action bound.
     init_log_std: float = -1.5
     init_weights: str = "xavier"  # xavier (reference) | torch (torch's default)
     init_mean_scale: float = 0.01  # the mean's output layer is scaled by this: a near-zero start

@@ -3,7 +3,7 @@ units, so that ``precision=bf16`` runs only where it is fast, and every speed na
 
 Without bfloat16 instructions (AVX-512 BF16, AMX on x86; BF16 on Arm), torch computes bfloat16
 products on a slow path: on an AVX2-only EPYC a (40,000 x 300) @ (300 x 300) product ran at 1
-GFLOP/s in bfloat16 against 10 in float32 (issue 32), and a corridor HMepol epoch 5x slower.
+GFLOP/s in bfloat16 against 10 in float32, and a corridor HMepol epoch 5x slower.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A population's members: what they may differ in, the *member-scalar* keys (issue 23), and
+"""A population's members: what they may differ in, the *member-scalar* keys, and
 each member's config and run directory from a job's ``seeds=[...]`` or ``members=[...]``.
 
 A population trains runs as one batched program. Members may differ in any key whose value is

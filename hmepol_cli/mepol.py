@@ -39,132 +39,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
 from hmepol_cli import estimators
-from hmepol_cli.config import backtracking_rule, parse_bptt
 from hmepol_cli.envs import World
 from hmepol_cli.population import PolicyPopulation, PopulationAdam, Snapshot
-from hmepol_cli.precision import PRECISIONS, Precision, precision_of
+from hmepol_cli.records import EpochStats, StepRecord, UpdateResult
 from hmepol_cli.rollout import Rollout, collect, draw_configurations, non_finite_rows
-from hmepol_cli.surrogate import Estimate, Surrogate, member_objectives
-
-
-@dataclass(frozen=True)
-class OffPolicySettings:
-    """What one epoch of Algorithm 3.1 needs from the config, read once. ``members`` holds what
-    each member of a population may have of its own (:mod:`hmepol_cli.members`)."""
-
-    trajectories: int  # N
-    horizon: int  # T
-    batch_size: int  # B, trajectories per mini-batch
-    estimator: estimators.KNNEstimator  # entropy, IW entropy and KL (eqs. 2.6-2.8)
-    members: tuple[MemberSettings, ...]  # per member of the population
-    backtracking: str  # reference | first_step
-    backtrack_tries: int
-    backtrack_factor: float
-    restore: str  # parameters | parameters_and_adam
-    adam_reset: bool  # fresh Adam moments at the start of every epoch's loop (ours)
-    exact_kl: bool  # judge steps by the KL of likelihoods over the whole history
-    bptt: int | None  # steps of the recursion the likelihoods recompute (None: all)
-    diagnostics: bool = False  # record every step (StepRecord), the exact KL among them
-    precision: Precision = PRECISIONS["float32"]  # how the likelihoods' products are computed
-
-    @classmethod
-    def from_config(
-        cls, cfg: DictConfig, history_size: int, member_cfgs: Sequence[DictConfig] = ()
-    ) -> OffPolicySettings:
-        """The settings of ``cfg``; ``member_cfgs`` (default: [cfg]) the population's members,
-        which differ only in member-scalar keys."""
-        a = cfg.algo
-        return cls(
-            trajectories=int(a.trajectories),
-            horizon=int(a.horizon),
-            batch_size=int(a.batch_size),
-            estimator=estimators.make_estimator(cfg.estimator),
-            members=tuple(MemberSettings.from_config(c) for c in (member_cfgs or [cfg])),
-            backtracking=backtracking_rule(a),  # an older run keeps its own rule
-            backtrack_tries=int(a.lr_backtrack_tries),
-            backtrack_factor=float(a.lr_backtrack_factor),
-            restore=str(a.get("backtrack_restore", "parameters_and_adam")),
-            adam_reset=a.get("adam_reset") == "epoch",
-            exact_kl=a.trust_region == "exact" and history_size > 0,
-            bptt=parse_bptt(cfg.policy.bptt),
-            diagnostics=bool(cfg.get("diagnostics", False)),
-            precision=precision_of(cfg),
-        )
-
-
-@dataclass(frozen=True)
-class MemberSettings:
-    """The hyperparameters one member of a population has of its own."""
-
-    lr: float
-    kl_threshold: float  # delta
-    max_off_iters: int
-    objective: str = "mean"  # mean | cvar
-    alpha: float = 1.0  # CVaR level (eq. 3.3)
-
-    @classmethod
-    def from_config(cls, cfg: DictConfig) -> MemberSettings:
-        a = cfg.algo
-        return cls(
-            lr=float(a.lr),
-            kl_threshold=float(a.kl_threshold),
-            max_off_iters=int(a.max_off_iters),
-            objective=str(a.objective),
-            alpha=float(a.alpha),
-        )
-
-
-@dataclass
-class StepRecord:
-    """One off-policy step tried (``OffPolicySettings.diagnostics``): steps.csv's row."""
-
-    step: int  # 0, 1, ... in the order tried
-    lr: float
-    accepted: bool
-    kl: float  # the KL the trust region judged the step by
-    kl_one_step: float  # eq. 2.8 from the likelihoods the gradient uses (policy.bptt)
-    kl_exact: float  # eq. 2.8 from likelihoods over the whole history (NaN: Markovian)
-    iw_entropy: float  # the surrogate: mean IW entropy of the mini-batches (eq. 2.7)
-    objective: float
-
-
-@dataclass
-class UpdateResult:
-    """One member's off-policy loop in one epoch."""
-
-    entropies: np.ndarray  # (M,) IW entropies of the accepted policy
-    kl: float  # KL of the accepted policy (the one the trust region judged by)
-    off_iters: int  # accepted steps
-    backtracks: int  # learning-rate reductions
-    lr: float  # the learning rate of the last step tried
-    kl_exact: float = math.nan  # the exact KL of the accepted policy (diagnostics)
-    # A lowered precision (bf16): the accepted policy's KL and mean IW entropy in full precision
-    kl_full_precision: float = math.nan
-    entropy_iw_full_precision: float = math.nan
-    steps: list[StepRecord] = field(default_factory=list)  # every step tried (diagnostics)
-    # What was not finite where no step could mend it (at the sampling policy, or at every
-    # step tried): the member stops (EpochStats.broken)
-    non_finite: list[str] = field(default_factory=list)
-
-
-@dataclass
-class EpochStats:
-    """One member's epoch."""
-
-    entropies: np.ndarray  # (M,) on-policy kNN entropy of each mini-batch (eq. 2.6)
-    batch_configurations: np.ndarray  # (M,) configuration of each mini-batch
-    objective: float
-    update: UpdateResult
-    history_max: float = 0.0  # largest |h'_t| of the rollout: a diverging recursion shows here
-    action_max: float = 0.0  # largest |a_t| drawn (before clipping): diverging means show here
-    floor_share: float = 0.0  # share of particles whose ball volume hit the estimator's floor
-    log_std: float = 0.0  # the sampling policy's log-std, averaged over action dimensions
-    clip_share: float = 0.0  # share of action components past the action bounds
-    seconds: dict[str, float] = field(default_factory=dict)
-    broken: list[str] = field(default_factory=list)  # non-finite in the rollout: the member stops
+from hmepol_cli.settings import MemberSettings, OffPolicySettings, member_objectives
+from hmepol_cli.surrogate import Estimate, Surrogate
 
 
 # ------------------------------------------------------------------ one epoch
@@ -288,11 +170,14 @@ class _Search:
     stopped: list[str] = field(default_factory=list)  # what no step could mend
     steps: list[StepRecord] = field(default_factory=list)
 
-    def accept(self, kl: float, kl_exact: float, s: OffPolicySettings) -> bool:
+    def accept(
+        self, kl: float, kl_exact: float, entropies: np.ndarray, s: OffPolicySettings
+    ) -> bool:
         """The step stays inside the trust region: theta' is the last accepted one now.
         -> whether to step again"""
         self.off_iters += 1
         self.kl, self.kl_exact = kl, kl_exact
+        self.entropies = entropies
         done = self.off_iters >= self.hyper.max_off_iters
         if s.backtracking == "reference":
             done |= self.backtracks > 0  # at most one step after backtracking
@@ -375,33 +260,34 @@ def off_policy_loop(
             ]
         host = torch.stack(numbers).tolist()
         flags, kl_values, finite_host, diagnosed = host[0], host[1], host[2:6], host[6:]
-        accept, revert, broken = (torch.zeros(size, dtype=torch.bool, device=device)
-                                  for _ in range(3))  # fmt: skip
-        accepted_now = []
+        inside = [bool(f) for f in flags]  # KL <= delta, every quantity finite
         for i, m in enumerate(stepped):
             search = searches[m]
             if s.diagnostics:
                 search.steps.append(
-                    StepRecord(len(search.steps), search.lr, bool(flags[i]), kl_values[i],
+                    StepRecord(len(search.steps), search.lr, inside[i], kl_values[i],
                                *(row[i] for row in diagnosed))
                 )  # fmt: skip
             search.non_finite = [n for n, ok in zip(NON_FINITE, finite_host, strict=True)
                                  if not ok[i]]  # fmt: skip
-            if flags[i]:
-                exact_kl = diagnosed[1][i] if s.diagnostics else search.kl_exact
-                searching[m] = search.accept(kl_values[i], exact_kl, s)
-                accept[m] = True
-                accepted_now.append(i)
-            else:
-                searching[m] = search.revert(s)
-                revert[m] = True
-                broken[m] = bool(search.non_finite)  # its Adam state too, whatever restore says
-        if accepted_now:
-            kept = estimate.entropies.detach().double().cpu().numpy()
-            for i in accepted_now:
-                searches[stepped[i]].entropies = kept[i]
+        accept, revert, broken = (torch.zeros(size, dtype=torch.bool, device=device)
+                                  for _ in range(3))  # fmt: skip
+        for i, m in enumerate(stepped):
+            accept[m], revert[m] = inside[i], not inside[i]
+            broken[m] = not inside[i] and bool(searches[m].non_finite)
+        # accept: theta' is the last accepted policy now
         last_accepted.take(population, optimizer, grads, accept)
+        if any(inside):
+            kept = estimate.entropies.detach().double().cpu().numpy()
+            for i, m in enumerate(stepped):
+                if inside[i]:
+                    exact_kl = diagnosed[1][i] if s.diagnostics else searches[m].kl_exact
+                    searching[m] = searches[m].accept(kl_values[i], exact_kl, kept[i], s)
+        # revert: back to the last accepted theta' (and Adam's state, by the rule or on a NaN)
         last_accepted.restore(population, optimizer, grads, revert, optimizer_mask=broken)
+        for i, m in enumerate(stepped):
+            if not inside[i]:
+                searching[m] = searches[m].revert(s)  # the learning rate backtracked, or stop
     for search in searches.values():  # every step tried broke a number: nothing mends it
         if search.off_iters == 0 and search.non_finite and not search.stopped:
             search.stopped = [f"{name} at every step tried" for name in search.non_finite]

@@ -1,4 +1,4 @@
-"""Where lower precision is used, and where it is not (issue 22).
+"""Where lower precision is used, and where it is not.
 
 An epoch's cost is the off-policy loop's forward and backward passes over all particles, and
 those are the hidden layers' (300, 300) matrix products. ``precision`` chooses how they run:

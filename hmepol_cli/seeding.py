@@ -36,7 +36,7 @@ def keep_freed_memory() -> None:
     An off-policy iteration allocates and frees activations of ~100 MB (80,000 particles x 300
     units). By default glibc serves blocks that large with mmap and unmaps them when freed, so
     every iteration pays the page faults of fresh memory again: an iteration then takes ~1.1-1.5x
-    as long (README, Speed). Raising the mmap and trim thresholds keeps those pages in the heap.
+    as long (docs/speed.md). Raising the mmap and trim thresholds keeps those pages in the heap.
     Process-wide, idempotent, and a no-op where the C library has no ``mallopt``.
     """
     try:

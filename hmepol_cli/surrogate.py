@@ -11,29 +11,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 
 from hmepol_cli import estimators
-from hmepol_cli.objectives import objective
 from hmepol_cli.population import PolicyPopulation
 from hmepol_cli.rollout import Rollout
-
-if TYPE_CHECKING:
-    from hmepol_cli.mepol import OffPolicySettings
-
-
-def member_objectives(
-    entropies: torch.Tensor, members: Sequence[int], settings: OffPolicySettings
-) -> torch.Tensor:
-    """Each row's objective over its mini-batch entropies, with its member's own objective and
-    alpha. entropies (R, M), members (R,) population indices -> (R,)"""
-    rows = []
-    for i, m in enumerate(members):
-        hyper = settings.members[m]
-        rows.append(objective(entropies[i : i + 1], hyper.objective, hyper.alpha)[0])
-    return torch.stack(rows)
+from hmepol_cli.settings import OffPolicySettings, member_objectives
 
 
 @dataclass

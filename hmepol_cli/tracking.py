@@ -1,4 +1,4 @@
-"""Live experiment tracking (issue 25): TensorBoard, Weights & Biases and MLflow, beside the CSV
+"""Live experiment tracking: TensorBoard, Weights & Biases and MLflow, beside the CSV
 files every run writes anyway (``logger=[csv,tensorboard,wandb,mlflow]``).
 
 Every member of a population is a tracking run of its own, named like its run directory and

@@ -32,11 +32,10 @@ from hmepol_cli.envs import make_world
 from hmepol_cli.errors import RunDirError
 from hmepol_cli.evaluation import evaluate_and_save
 from hmepol_cli.members import check_members
-from hmepol_cli.mepol import EpochStats, OffPolicySettings
 from hmepol_cli.policies import make_policy
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
 from hmepol_cli.precision import precision_of
-from hmepol_cli.records import epoch_rows
+from hmepol_cli.records import EpochStats, epoch_rows
 from hmepol_cli.run import (
     CHECKPOINT,
     EVAL_DIR,
@@ -56,6 +55,7 @@ from hmepol_cli.seeding import (
     make_generator,
     set_random_seed,
 )
+from hmepol_cli.settings import OffPolicySettings
 from hmepol_cli.tracking import MemberTracking, population_group, scalars_of
 
 log = logging.getLogger("hmepol")

@@ -1,6 +1,6 @@
 r"""Cue corridor: a world where only a memory of the first state tells the agent where to go.
 
-A test world for issue 3 (a task a Markovian policy cannot solve), not one of the registered
+A test world for memory (a task a Markovian policy cannot solve), not one of the registered
 pre-training worlds. The arena is [-1, 1]^2. Two full-width walls (y in [0.2, 0.3] and
 [-0.3, -0.2]) cut it into three bands, the corridor (|y| < 0.2) and two *pads* (|y| > 0.3),
 and no path joins a pad to the corridor::

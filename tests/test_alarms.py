@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from hmepol_cli.alarms import MemberAlarms, precision_drift
 from hmepol_cli.config import AlarmConfig
-from hmepol_cli.mepol import EpochStats, UpdateResult
+from hmepol_cli.records import EpochStats, UpdateResult
 
 
 def stats(update: dict | None = None, **changes) -> EpochStats:

@@ -52,7 +52,7 @@ TRAIN = [
     (["env=mountaincar", "env.probs=[1,2]"], "env.probs=[1.0, 2.0] must hold 1 finite number"),
     (["env=gym", "env.id=Pendulum-v1", "env.configs=[{gravity:5}]"], "env.configs[0]"),
     (["env=gym", f"env.id={WALK_ID}", "env.configs=[{},{dim:3}]"], "env.configs[1]"),
-    # issue 24: Hydra's own messages, with what is allowed
+    # Hydra's own messages, with what is allowed
     (["policy=nosuch"], "choose one of: gru, lstm, markov, recursive, twohead"),
     (["algo.lrr=1e-3"], "did you mean algo.lr"),
     (["lrr=1e-3"], "did you mean algo.lr"),
@@ -60,7 +60,7 @@ TRAIN = [
     (["algo.lr=fast"], "algo.lr takes a number"),
     (["policy.hidden=3"], "policy.hidden takes a list of whole numbers"),
     (["hydra/launcher=nosuch"], "choose one of: basic,"),
-    # issue 24: values that mean nothing
+    # values that mean nothing
     (["epochs=0"], "epochs=0 must be a whole number >= 1"),
     (["env.probs=[0.5,0.5]"], "slope takes no such key"),
     (["env=corridor", "env.workers=2"], "corridor takes no such key"),
@@ -91,6 +91,7 @@ def assert_one_line(code: int, text: str, expected: str) -> None:
 
 
 @pytest.mark.parametrize("args, expected", TRAIN, ids=lambda a: a[0] if isinstance(a, list) else "")
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_train_refuses_a_bad_value_in_one_line_and_writes_nothing(tmp_path, capsys, args, expected):
     run_dir = tmp_path / "run"
     code, text = run(capsys, "train", *args, f"hydra.run.dir={run_dir}")

@@ -67,6 +67,7 @@ def check_one_layer(rows: int, inputs: int, outputs: int, relu: bool, seed: int 
     assert_within_rounding(gb, g_in.sum(0), g_in.abs().sum(0), rows)
 
 
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_a_hidden_layer_at_the_thesis_shape_is_torchs_product_to_float32_rounding():
     check_one_layer(40_000, 300, 300, relu=True)
 

@@ -74,6 +74,7 @@ def _needs_missing_mujoco(cfg) -> bool:
     return gymnasium.spec(cfg.env.id).entry_point.startswith("gymnasium.envs.mujoco")
 
 
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_every_shipped_config_composes_and_validates(hydra_compose):
     groups = ["env", "algo", "policy", "estimator", "experiment"]
     seen = {}
@@ -123,6 +124,7 @@ def test_thesis_presets_carry_table_values(hydra_compose):
     assert (cfg.algo.objective, cfg.algo.alpha, cfg.env.name) == ("cvar", 0.1, "multigrid")
 
 
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_presets_hold_only_what_they_change(hydra_compose):
     """Every key of an experiment preset differs from what its world and algorithm compose to
     without it (for the presets that leave the algorithm open, with at least one algorithm)."""

@@ -181,7 +181,7 @@ def test_provenance_names_every_departure(tmp_path):
 
 
 def test_the_kept_runs_postdate_the_preregistration_and_use_the_faithful_rules():
-    """Issue 33: PREREGISTRATION.md's commit is older than every epochs.csv row, and every run
+    """PREREGISTRATION.md's commit is older than every epochs.csv row, and every run
     used env.edge=slide and algo.backtracking=reference (needs the git history: CI's clone)."""
     registered = analysis.preregistration(DECISIVE)
     if registered is None:

@@ -15,8 +15,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
-from benchmarks.baseline import slide_path
-from benchmarks.worlds import edge_distance
 from hmepol_cli.envs import ENVIRONMENTS, make_world
 from hmepol_cli.envs.base import EDGE_RULES, Box, NavigationWorld
 from hmepol_cli.envs.corridor import EAST_STUB, ROOM, WEST_STUB, CorridorWorld
@@ -25,6 +23,7 @@ from hmepol_cli.envs.gym_api import ENV_IDS, NavigationEnv, NavigationVectorEnv,
 from hmepol_cli.envs.multigrid import MultiGridWorld
 from hmepol_cli.envs.render import draw_world, force_arrows, show_world
 from hmepol_cli.envs.slope import SlopeWorld
+from tests.reference_edges import edge_distance, slide_path
 
 CONF_ENV = Path(__file__).resolve().parents[1] / "conf" / "env"
 WORLDS: dict[str, NavigationWorld] = {
@@ -108,7 +107,7 @@ def path_samples(world, start: np.ndarray, delta: np.ndarray, n: int = 2001) -> 
 
 def expected_moves(world, p: np.ndarray, d: np.ndarray):
     """Where each move ends under the world's edge rule if nothing blocks it, and points along
-    its path, from implementations that are not base.py's (benchmarks.baseline's scalar slide,
+    its path, from implementations that are not base.py's (tests/reference_edges.py's scalar slide,
     fold above). -> (ends (N, 2), samples (N, n, 2), resolved (N,) bool)"""
     if world.edge == "mirror":
         return fold_xy(world, p + d), path_samples(world, p, d), np.ones(len(p), dtype=bool)
@@ -185,7 +184,7 @@ def test_a_step_displaces_by_the_clipped_action_plus_the_force_in_open_space():
     assert torch.allclose(new, torch.tensor([[0.7, 0.75]]))
 
 
-# REFERENCE_WORLDS.md's worked examples (multigrid config 7: open floor, no slope): from, move,
+# docs/worlds.md's worked examples (multigrid config 7: open floor, no slope): from, move,
 # where the reference lands, where a mirror would. The last one slides into the north-west
 # corner and is turned twice; the page rounds it to 4 decimals, worked out by hand: the move
 # crosses x = -1 at 0.15 of its length, at (-1, 0.9045); its rest (-0.17, 0.0255) becomes
@@ -217,7 +216,7 @@ def test_the_edge_rules_reproduce_the_reference_pages_worked_examples(edge, colu
 
 
 def test_the_slide_keeps_agents_pushed_into_an_edge_as_close_as_the_reference_does():
-    """REFERENCE_WORLDS.md: agents pushed steadily into an edge stay about 0.04 from it on
+    """docs/worlds.md: agents pushed steadily into an edge stay about 0.04 from it on
     average under the reference's rule, about 0.09 under a mirror."""
     slide = edge_distance(MultiGridWorld().to("cpu", torch.float64))
     mirror = edge_distance(MultiGridWorld(edge="mirror").to("cpu", torch.float64))
@@ -254,7 +253,8 @@ def test_a_push_back_into_a_wall_leaves_the_agent_where_it_was():
 
 
 # ---------------------------------------------------------------- layouts
-# REFERENCE_WORLDS.md, verbatim: '#' wall, '.' free; first row north, first column west.
+# The reference implementation's layouts, verbatim: '#' wall, '.' free; first row north, first
+# column west (docs/worlds.md).
 REFERENCE_LAYOUTS = """
 config 0          config 1          config 2          config 3          config 4
 ....##....        ......##..        ....##....        ..........        ..........
@@ -401,7 +401,7 @@ def test_the_corridor_is_most_of_the_corridor_worlds_free_space():
 
 
 # ---------------------------------------------------------------- slopes
-# REFERENCE_WORLDS.md: (direction, magnitude mean, upper truncation, north half only).
+# docs/worlds.md: (direction, magnitude mean, upper truncation, north half only).
 NORTH_HALF_ONLY = True
 REFERENCE_SLOPES = {
     ("slope", 0): ((0.0, -1.0), 0.1, 0.2, NORTH_HALF_ONLY),
@@ -464,7 +464,7 @@ def zero_mean_rollout(world, config: int, std: float = 0.22, n: int = 100, steps
 
 
 def test_the_frequent_slope_carries_agents_away_and_the_rare_one_pins_them():
-    """REFERENCE_WORLDS.md: under a zero-mean policy of std 0.22, config 0 (p = 0.8) spends
+    """docs/worlds.md: under a zero-mean policy of std 0.22, config 0 (p = 0.8) spends
     ~90% of the steps in the southern half, config 1 (p = 0.2) stays in the northern half."""
     world = WORLDS["slope"]
     assert world.configuration_probs == (0.8, 0.2)
@@ -504,6 +504,7 @@ DRIVES = [  # (world, config, action, noise): straight into a wall, an edge or a
 
 @pytest.mark.parametrize("edge", EDGE_RULES)
 @pytest.mark.parametrize("name, config, action, noise", DRIVES)
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_agents_driven_into_walls_edges_and_corners_do_not_pile_up(
     name, config, action, noise, edge
 ):
@@ -583,6 +584,7 @@ def _corridor_run(
 
 
 @pytest.mark.parametrize("config, downwind", [(0, WEST_STUB), (1, EAST_STUB)])
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_pushing_into_the_downwind_entrance_never_gets_past_it(config, downwind):
     world = CorridorWorld(wind=0.4)
     path = _corridor_run(world, config, downwind, steps=300, push=-1)
@@ -788,6 +790,7 @@ def test_show_world_saves_one_panel_per_configuration(tmp_path):
 
 # ---------------------------------------------------------------- estimator on the worlds
 @pytest.mark.parametrize("name, batch_size", [("slope", 5), ("multigrid", 5), ("corridor", 1)])
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_no_ball_volume_hits_the_floor_on_the_initial_policy(name, batch_size):
     """The thesis' mini-batches (B x T particles, k = 30) of the default initial policy: no
     particle's ball volume is at the estimator's floor (coincident particles would be)."""

@@ -1,4 +1,4 @@
-"""Any Gymnasium environment as a world (issue 15): stepping, episodes that end early, the
+"""Any Gymnasium environment as a world: stepping, episodes that end early, the
 entropy on the chosen features, one configuration per mini-batch, seeds, workers, resume,
 evaluation's projection and fine-tuning on the environment's own reward."""
 
@@ -256,6 +256,7 @@ def test_the_entropy_of_mountaincar_position_and_velocity_rises_over_a_few_epoch
     assert trainer.world.features == (0, 1)
 
 
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_hmepol_in_a_gym_world_resumes_exactly(tmp_path):
     """HMepol (recursive policy, bptt = 2) on the walker with two drifts: 3 epochs straight equal
     2 epochs, then a resume for the third (the episode seeds come from the checkpointed
@@ -276,6 +277,7 @@ def test_hmepol_in_a_gym_world_resumes_exactly(tmp_path):
     assert (tmp_path / "straight" / "eval" / "final" / "heatmap.png").is_file()
 
 
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_the_report_names_a_gym_run_by_its_id_and_groups_its_configurations(tmp_path):
     """Two seeds on the walker with two drifts: one group, figures named after the id (made
     safe for file names), configurations named by what differs between them."""

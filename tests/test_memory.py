@@ -1,4 +1,4 @@
-"""Memory is necessary (issue 3): a cue seen only at the first step decides where to go later.
+"""Memory is necessary: a cue seen only at the first step decides where to go later.
 
 The world is :class:`CueCorridorWorld`: the configuration shows only in the start position (top
 pad: go left; bottom pad: go right), the first step puts every agent on the origin whatever it
@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 
+import pytest
 import torch
 
 from hmepol_cli.finetune.task import GoalTask, TaskRollout, collect_episodes
@@ -145,6 +146,7 @@ def test_a_markovian_policy_walks_the_same_path_in_both_configurations():
 
 
 # --------------------------------------------------------------------------- learning
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_the_recursive_policy_learns_to_remember_the_cue():
     policy = recursive_policy()
     before = success_rates(
@@ -155,6 +157,7 @@ def test_the_recursive_policy_learns_to_remember_the_cue():
     assert min(rates) >= 0.8, rates
 
 
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_the_markovian_policy_cannot_beat_chance():
     rates = train(markov_policy())
     assert sum(rates) / 2 <= 0.6, rates

@@ -9,8 +9,10 @@ import pytest
 import torch
 
 from hmepol_cli.estimators import KNNEstimator
-from hmepol_cli.mepol import Estimate, MemberSettings, OffPolicySettings, off_policy_loop
+from hmepol_cli.mepol import off_policy_loop
 from hmepol_cli.population import PolicyPopulation, PopulationAdam
+from hmepol_cli.settings import MemberSettings, OffPolicySettings
+from hmepol_cli.surrogate import Estimate
 
 LR = 0.1
 

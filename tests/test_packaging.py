@@ -1,4 +1,4 @@
-"""The package as a new user gets it (issue 35): what `make demo` installs, the licence and the
+"""The package as a new user gets it: what `make demo` installs, the licence and the
 citation, `hmepol --version`, and a built wheel that works with no checkout in sight."""
 
 from __future__ import annotations

@@ -284,7 +284,7 @@ def test_tanh_encoder_keeps_the_history_bounded_where_relu_can_grow_without_boun
 
 @pytest.mark.parametrize("name", ["markov", "recursive", "twohead", "gru", "lstm"])
 def test_the_default_policy_starts_as_the_reference_does(name):
-    """REFERENCE_WORLDS.md: log-std -1.5 (std 0.22), Xavier-uniform linear layers, near-zero
+    """docs/worlds.md: log-std -1.5 (std 0.22), Xavier-uniform linear layers, near-zero
     mean actions."""
     from hmepol_cli.config import PolicyConfig
     from hmepol_cli.policies import make_policy

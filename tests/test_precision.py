@@ -1,4 +1,4 @@
-"""Mixed precision (issue 22): which products are lowered, which are not, and that the
+"""Mixed precision: which products are lowered, which are not, and that the
 trust region starts from exactly 0 whatever the precision."""
 
 from __future__ import annotations

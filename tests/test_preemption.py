@@ -1,4 +1,4 @@
-"""Preemption with real signals (issue 24): SIGTERM (a cluster's) and SIGINT (Ctrl-C) stop a
+"""Preemption with real signals: SIGTERM (a cluster's) and SIGINT (Ctrl-C) stop a
 run or a sweep where it is, record it as interrupted, release its lock, say so in one line and
 exit 128 + the signal; the same command again continues to the numbers of an uninterrupted run."""
 

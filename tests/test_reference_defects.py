@@ -1,4 +1,4 @@
-"""The emulation of the reference's three defects (benchmarks/reference_defects.py), on cases
+"""The emulation of the reference's three defects (tests/reference_edges.py), on cases
 worked out by hand, and where its edge rule must agree with ours."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from benchmarks.reference_defects import DEFECTS, make_variant, reference_edge
 from hmepol_cli.envs.multigrid import MultiGridWorld
 from hmepol_cli.envs.slope import SlopeWorld
+from tests.reference_edges import DEFECTS, make_variant, reference_edge
 
 HALF = 0.5  # a push-back uniform
 
@@ -78,7 +78,7 @@ def test_the_reference_edge_rule_agrees_with_ours_except_in_the_northern_corners
 
 @pytest.mark.parametrize(
     ("start", "move_", "lands"),
-    [  # REFERENCE_WORLDS.md, worked examples of the reference's edge rule
+    [  # docs/worlds.md, worked examples of the reference's edge rule
         ((-0.5, 0.95), (0.05, 0.2), (-0.3375, 0.9625)),
         ((-0.5, 0.95), (-0.05, 0.2), (-0.6625, 0.9625)),
         ((-0.5, 0.95), (0.2, 0.2), (-0.3, 0.85)),

@@ -498,6 +498,7 @@ def test_of_two_copies_the_latest_is_kept(tmp_path):
 
 
 # ----------------------------------------------------------------------------- the whole report
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     root = tmp_path / "runs"
     for algo in ("mepol", "alphamepol", "hmepol"):
@@ -591,6 +592,7 @@ EVEN_EPOCHS_DRAW_BOTH = {e: (0, 1) if e % 2 == 0 else (0,) for e in range(20)}
     ],
     ids=["last-line-cut", "short-row", "not-a-number", "nan", "inf", "inf-config", "nan-drawn"],
 )
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_report_skips_a_run_with_a_malformed_row_and_says_why(tmp_path, damage, reason):
     root = tmp_path / "runs"
     for seed in (0, 1):
@@ -650,6 +652,7 @@ def test_counts_on_stdout_and_in_the_page_are_the_runs_actually_used(tmp_path, c
     assert re.findall(r"<li><code>([^<]*)</code>", page) == ["hmepol-seed1-copy", "unfinished"]
 
 
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
 def test_a_new_report_replaces_the_files_of_the_earlier_one_and_nothing_else(tmp_path):
     root, out = tmp_path / "runs", tmp_path / "report"
     for algo in ("mepol", "hmepol"):

@@ -1,4 +1,4 @@
-"""What the report's figures say, read from matplotlib's objects and the captions (issue 34):
+"""What the report's figures say, read from matplotlib's objects and the captions:
 a series' colour is a function of what it is, legends count what they should, captions name
 the seed a map shows and the old rules a run was made with."""
 

@@ -64,7 +64,7 @@ def test_a_job_line_reaches_the_shared_stream_in_one_write():
     assert stream.writes == ["hmepol: job 3 finished\n"]  # print would write the newline apart
 
 
-# Issue 23's grid: two winds by two seeds of the corridor. One joblib sweep of it serves the
+# The sweep's grid: two winds by two seeds of the corridor. One joblib sweep of it serves the
 # tests that only read its runs (the slowest part of the suite; each job is a process of its own).
 # threads=1: both launchers then run every job on one thread. With torch's default, joblib's jobs
 # take cores / jobs threads each and the population all cores, and on some CPUs (AVX-512) a
@@ -191,7 +191,7 @@ def test_jobs_whose_programs_are_equal_become_one_population():
 @pytest.mark.slow
 @pytest.mark.xdist_group("grid_sweep")
 def test_a_sweep_over_winds_and_seeds_runs_as_one_population_of_four(tmp_path, grid_sweep):
-    """Issue 23: hmepol sweep env=corridor algo=mepol wind=0.05,0.4 seed=0,1 with the
+    """hmepol sweep env=corridor algo=mepol wind=0.05,0.4 seed=0,1 with the
     population launcher is one job of four members, each with its wind in its config and
     run.json, in the run directories the ordinary sweep writes (the same configs, the same
     curves), which the report reads like any others and a second sweep skips."""

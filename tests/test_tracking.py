@@ -1,4 +1,4 @@
-"""Experiment tracking (issue 25), read back with each tracker's own library: TensorBoard's
+"""Experiment tracking, read back with each tracker's own library: TensorBoard's
 event reader, W&B's offline run files (its protobuf records), MLflow's client on the SQLite
 store. Every epoch's entropy once, per member of a population, and once more after a kill and
 a resume; a tracker that fails is one warning; a missing package is one line."""

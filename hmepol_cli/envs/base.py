@@ -7,7 +7,7 @@ the clipped action. Every method works on a whole batch of agents at once, as te
 device the world was moved to.
 
 Walls and edges follow the public reference implementation of the thesis' worlds ([22];
-REFERENCE_WORLDS.md), which keeps agents from piling up on identical points (kNN distances of 0):
+docs/worlds.md), which keeps agents from piling up on identical points (kNN distances of 0):
 
 - **arena edge** (``edge="slide"``, the reference): the part of a move beyond an edge is turned
   by a quarter turn. From the point where the move crosses the edge, the remainder's outward

@@ -1,7 +1,7 @@
 """Gridworlds on [-1, 1]^2 whose walls are laid out as 10 x 10 blocks, with a slope force.
 
 Shared by the slope world (one layout, two slopes) and multigrid (ten layouts, ten slopes).
-Maps are read as printed, north at the top (REFERENCE_WORLDS.md): the first row of a layout is
+Maps are read as printed, north at the top (docs/worlds.md): the first row of a layout is
 the northern edge y in [0.8, 1], the first column the western edge x in [-1, -0.8]. The start
 area is the 0.5 x 0.5 square in the north-west corner.
 """
@@ -17,7 +17,7 @@ import torch
 from hmepol_cli.envs.base import MAX_ACTION, Box, NavigationWorld, lattice
 
 ARENA = Box(-1.0, -1.0, 1.0, 1.0)
-START = Box(-1.0, 0.5, -0.5, 1.0)  # north-west corner (REFERENCE_WORLDS.md)
+START = Box(-1.0, 0.5, -0.5, 1.0)  # north-west corner (docs/worlds.md)
 NORTHERN_HALF = Box(-1.0, 0.0, 1.0, 1.0)  # the half that holds the start room
 SLOPE_STD = MAX_ACTION / 20  # 0.01: sd of every slope's magnitude (reference)
 

@@ -37,6 +37,7 @@ from gymnasium.vector.utils import batch_space
 
 from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.envs.corridor import DEFAULT_WIND
+from hmepol_cli.envs.registry import make_world
 
 DEFAULT_HORIZON = 400  # T (thesis 5.1)
 
@@ -64,8 +65,6 @@ def register_envs() -> None:
 def build_world(world: str, wind: float | None = None, edge: str = "slide") -> NavigationWorld:
     """The world called ``world``; ``wind`` is the corridor's only parameter; ``edge`` the
     arena edge's rule (slide, the reference's, or mirror)."""
-    from hmepol_cli.envs import make_world  # here, not at the top: the package imports us
-
     if wind is not None and world != "corridor":
         raise ValueError(f"wind={wind!r} is a parameter of the corridor only, not of {world!r}")
     wind = DEFAULT_WIND if wind is None else wind

@@ -1,4 +1,4 @@
-"""Any Gymnasium environment as a world: ``env=gym env.id=<id>`` (issue 15).
+"""Any Gymnasium environment as a world: ``env=gym env.id=<id>``.
 
 The class of environments M_1..M_I is one Gymnasium id made with I keyword sets
 (``env.configs``: ``gymnasium.make(id, **configs[i])``, e.g. two gravities), drawn with

@@ -1,6 +1,6 @@
 """MultiGrid (thesis 5.3, Fig. 5.11): the ten gridworlds of [22] on [-1, 1]^2, p_M uniform.
 
-Layouts and slopes as the public reference implementation has them (REFERENCE_WORLDS.md), maps
+Layouts and slopes as the public reference implementation has them (docs/worlds.md), maps
 printed north at the top (``#`` wall block of 0.2 x 0.2, ``.`` free). Slopes are added to the
 clipped action every step, with magnitudes drawn from truncated normals of sd 0.01:
 

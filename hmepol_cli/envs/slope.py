@@ -1,4 +1,4 @@
-"""Grid World with Slope (thesis 5.1, Fig. 5.1), as in the reference of [22] (REFERENCE_WORLDS.md).
+"""Grid World with Slope (thesis 5.1, Fig. 5.1), as in the reference of [22] (docs/worlds.md).
 
 Four rooms; the start area is the north-west corner. A slope acts in the northern half of the
 arena (the half that holds the start room), its magnitude drawn every step from N(0.1, 0.01)

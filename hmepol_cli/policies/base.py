@@ -117,7 +117,7 @@ class Policy(nn.Module):
         self._init_weights, self._init_mean_scale = init_weights, float(init_mean_scale)
 
     def initialise(self, mean_layer: nn.Linear) -> None:
-        """The reference start (REFERENCE_WORLDS.md): Xavier-uniform weights in every linear
+        """The reference start (docs/worlds.md): Xavier-uniform weights in every linear
         layer (biases as torch draws them), and a near-zero mean action: ``mean_layer``, the
         layer that outputs the mean, scaled by ``init_mean_scale`` with a zero bias. (The
         reference fits its network to output zero for ~50 supervised steps instead; scaling

@@ -1,4 +1,4 @@
-"""What runs made with ``diagnostics=true`` tell about a collapse (issue 26): single-epoch
+"""What runs made with ``diagnostics=true`` tell about a collapse (the collapse study): single-epoch
 entropy drops, and the exact KL of each accepted update against the one-step KL the trust
 region judged.
 

@@ -32,7 +32,7 @@ from hmepol_cli.run import (
     FINAL_EVAL,
     FINETUNE_CSV,
     RUN_INFO,
-    hashable_value,
+    flat_config,
     load_positions,
 )
 from hmepol_cli.run import read_table as run_read_table
@@ -49,26 +49,12 @@ class RunError(Exception):
     """Why one run directory cannot be used (one line)."""
 
 
-def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
-    """Nested dicts -> {"a.b": leaf}; lists stay leaves (as tuples, so they can be compared and
-    hashed, keyword sets in them as sorted pairs)."""
-    out: dict[str, Any] = {}
-    if isinstance(node, dict):
-        for key, value in node.items():
-            out.update(flatten(value, f"{prefix}{key}."))
-    elif isinstance(node, list):
-        out[prefix[:-1]] = hashable_value(node)
-    else:
-        out[prefix[:-1]] = node
-    return out
-
-
 def _schema_defaults() -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     from hmepol_cli.config import Config
 
-    return flatten(OmegaConf.to_container(OmegaConf.structured(Config)))
+    return flat_config(OmegaConf.to_container(OmegaConf.structured(Config)))
 
 
 def load_config(path: Path) -> dict[str, Any]:
@@ -83,7 +69,7 @@ def load_config(path: Path) -> dict[str, Any]:
         container = OmegaConf.to_container(cfg, resolve=False)
     if not isinstance(container, dict):
         raise RunError(f"{path.name} is not a mapping")
-    return flatten(container)
+    return flat_config(container)
 
 
 def read_table(path: Path, required: tuple[str, ...], numeric: re.Pattern) -> pd.DataFrame:

@@ -1,4 +1,4 @@
-"""How the arena's edge rule shapes a zero-mean policy's visitation (REFERENCE_WORLDS.md).
+"""How the arena's edge rule shapes a zero-mean policy's visitation (docs/worlds.md).
 
 Under the reference's start policy (zero-mean Gaussian actions, std exp(-1.5) = 0.22; 100
 trajectories x 400 steps per configuration), for each edge rule: the share of steps in the
@@ -7,7 +7,7 @@ along the north-west room, x <= -0.2), the kNN entropy (k = 30) of all 40,000 st
 mean over mini-batches of 5 trajectories (2,000 particles, the thesis' B x T), and, for agents
 pushed steadily north into the edge in open floor, their mean distance from it::
 
-    python -m benchmarks.worlds                 # both rules, slope 0/1, multigrid 0
+    python -m investigations.worlds                 # both rules, slope 0/1, multigrid 0
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from omegaconf import OmegaConf
 
 from hmepol_cli import estimators
 from hmepol_cli.envs import make_world
+from tests.reference_edges import edge_distance
 
 CASES = (("slope", 0), ("slope", 1), ("multigrid", 0))
 STD = math.exp(-1.5)
@@ -36,22 +37,6 @@ def zero_mean_states(world, config: int, n: int, steps: int, seed: int) -> torch
         positions = world.step(positions, actions, configurations, g)
         visited.append(positions)
     return torch.stack(visited, dim=1)
-
-
-def edge_distance(world, n: int = 100, steps: int = 400, seed: int = 0) -> float:
-    """Mean distance from the north edge of agents pushing north (mean action 0.2, sd 0.05) in
-    multigrid configuration 7's open northern floor (no slope), after 50 steps."""
-    g = torch.Generator().manual_seed(seed)
-    configurations = torch.full((n,), 7)
-    positions = torch.stack([torch.full((n,), 0.0), torch.full((n,), 0.5)], dim=1).double()
-    positions = positions.to(world.dtype)
-    gaps = []
-    for t in range(steps):
-        actions = torch.tensor([0.0, 0.2]) + 0.05 * torch.randn(n, 2, generator=g)
-        positions = world.step(positions, actions.to(world.dtype), configurations, g)
-        if t >= 50:
-            gaps.append(world.arena.y1 - positions[:, 1])
-    return float(torch.cat(gaps).mean())
 
 
 def measure(edge: str, n: int, steps: int, seed: int) -> list[dict]:

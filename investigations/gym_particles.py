@@ -3,12 +3,12 @@ preset's estimate (20 trajectories x 400 steps in one mini-batch, k = 4, entropy
 and velocity), driven by a policy that reaches the goal (it pushes with the velocity, the
 energy-pumping policy, plus Gaussian noise of sd ``--noise``).
 
-Gymnasium ends an episode at the goal. Before issue 32 the trajectory kept its last state for
+Gymnasium ends an episode at the goal. Before, the trajectory kept its last state for
 the remaining steps as particles; now they are no particles (as the reference, whose
 ``real_traj_lengths`` drops them). This prints the kNN entropy (eq. 2.6) of the same states both
 ways, and what the repeated copies do to it::
 
-    python -m benchmarks.gym_particles
+    python -m investigations.gym_particles
 """
 
 from __future__ import annotations

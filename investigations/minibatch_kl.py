@@ -20,8 +20,8 @@ compared with the policy after one epoch of our off-policy loop (the preset's le
 30 steps, every one inside the KL threshold of 15), and, for larger KLs, after a few Adam steps
 at 10 and 100 times that learning rate, all on that same rollout and neighbour sets::
 
-    python -m benchmarks.minibatch_kl                   # multigrid and slope, seeds 0 and 1
-    python -m benchmarks.minibatch_kl --worlds multigrid --seeds 0
+    python -m investigations.minibatch_kl                   # multigrid and slope, seeds 0 and 1
+    python -m investigations.minibatch_kl --worlds multigrid --seeds 0
 """
 
 from __future__ import annotations

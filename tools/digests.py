@@ -3,8 +3,8 @@
 A refactoring that must not change any number is checked by running this at the commit before
 and the commit after and comparing the two outputs line by line::
 
-    python -m benchmarks.digests > before.txt    # at the old commit (git worktree)
-    python -m benchmarks.digests > after.txt
+    python -m tools.digests > before.txt    # at the old commit (git worktree)
+    python -m tools.digests > after.txt
     diff before.txt after.txt
 
 Each line is ``<case> <sha256 of the numbers>``: every column of epochs.csv and batches.csv but
