@@ -28,6 +28,8 @@ from hmepol_cli.run.io import (
 from hmepol_cli.run.layout import (
     BATCHES_CSV,
     CHECKPOINT,
+    FINAL_POLICY,
+    POLICY_KEYS,
     COMMANDS,
     CONFIG,
     EPOCHS_CSV,
@@ -65,6 +67,8 @@ from hmepol_cli.run.tables import (
 __all__ = [
     "BATCHES_CSV",
     "CHECKPOINT",
+    "FINAL_POLICY",
+    "POLICY_KEYS",
     "COMMANDS",
     "CONFIG",
     "EPOCHS_CSV",
