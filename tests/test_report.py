@@ -974,7 +974,8 @@ def test_exported_runs_rebuild_the_same_summary(tmp_path):
             run_dir = write_run(tmp_path / "runs", algo=algo, seed=seed, final=1.0 + seed / 10)
             (run_dir / "checkpoints").mkdir()
             (run_dir / "checkpoints" / "last.pt").write_bytes(b"weights")
-    exported = export_runs(tmp_path / "runs", tmp_path / "kept")
+    with pytest.warns(UserWarning, match="its final policy is not exported"):  # not a checkpoint
+        exported = export_runs(tmp_path / "runs", tmp_path / "kept")
     assert len(exported) == 4
     for run_dir in exported:
         assert not (run_dir / "checkpoints").exists()
