@@ -26,8 +26,14 @@ import pandas as pd
 import yaml
 
 from hmepol_cli.errors import UserError
-from hmepol_cli.report.comparisons import Paired, Stage, adastop, decision_text, paired
-from hmepol_cli.report.comparisons import window_metric
+from hmepol_cli.report.comparisons import (
+    Paired,
+    Stage,
+    adastop,
+    decision_text,
+    paired,
+    window_metric,
+)
 
 PREREGISTRATION = "preregistration.yaml"
 LAUNCHERS = ("local", "population", "population_local", "slurm", "population_slurm", "basic")
@@ -134,7 +140,9 @@ def load_spec(path: str | Path) -> Spec:
     if not (isinstance(window, list) and len(window) == 2 and 0 <= window[0] <= window[1] < epochs):
         raise UserError(f"{where}: metric.epochs={window!r} must be [first, last] with "
                         f"0 <= first <= last < epochs={epochs}")  # fmt: skip
-    comparisons = raw.get("comparisons") or [[b, a] for a, b in zip(arms, list(arms)[1:])]
+    comparisons = raw.get("comparisons") or [
+        [b, a] for a, b in zip(arms, list(arms)[1:], strict=False)
+    ]
     pairs = []
     for c in comparisons:
         if not (isinstance(c, list) and len(c) == 2 and all(x in arms for x in c) and c[0] != c[1]):
@@ -221,7 +229,7 @@ class Status:
         other); NaN while no run of the arm has a pace."""
         population = (launcher or self.spec.launcher).startswith("population")
         total = 0.0
-        for arm, runs in self.runs.items():
+        for runs in self.runs.values():
             paces = [r.pace for r in runs.values() if math.isfinite(r.pace)]
             pace = float(pd.Series(paces).median()) if paces else math.nan
             left = [self.spec.epochs - (runs[s].done if s in runs else 0)
@@ -240,7 +248,9 @@ def status(spec: Spec) -> Status:
     runs = {name: arm_runs(arm, spec.epochs) for name, arm in spec.arms.items()}
     complete = 0
     for stage in range(1, spec.stages + 1):
-        if all(s in runs[a] and runs[a][s].complete for a in runs for s in stage_seeds(spec, stage)):
+        if all(
+            s in runs[a] and runs[a][s].complete for a in runs for s in stage_seeds(spec, stage)
+        ):
             complete = stage
         else:
             break
@@ -320,8 +330,9 @@ def preregister(spec: Spec, commit: str) -> Path:
                             "pre-registered study runs as written: restore the spec or give a "
                             "new folder")  # fmt: skip
         if written.get("commit") != commit:
-            raise UserError(f"the code is at commit {commit[:12]}, not {str(written.get('commit'))[:12]} "
-                            f"pre-registered in {path}; run the study from that commit")  # fmt: skip
+            was = str(written.get("commit"))[:12]
+            raise UserError(f"the code is at commit {commit[:12]}, not {was} pre-registered in "
+                            f"{path}; run the study from that commit")  # fmt: skip
         return path
     spec.folder.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
@@ -365,8 +376,12 @@ def _watch(spec: Spec, stage: int, process: subprocess.Popen, warned: list[bool]
             last = line
         if not warned[0] and math.isfinite(hours) and hours > WARN_HOURS:
             warned[0] = True
-            print(f"hmepol: warning: stage {stage} of {spec.name} needs about {hours:.1f} h on "
-                  "this machine (estimated from its first epochs)", file=sys.stderr, flush=True)
+            print(
+                f"hmepol: warning: stage {stage} of {spec.name} needs about {hours:.1f} h on "
+                "this machine (estimated from its first epochs)",
+                file=sys.stderr,
+                flush=True,
+            )
 
 
 def run_study(spec: Spec) -> Status:

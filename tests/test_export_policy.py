@@ -30,7 +30,8 @@ def test_an_exported_run_keeps_its_final_policy_for_finetuning(tmp_path):
     for a, b in zip(trained.parameters(), original.parameters(), strict=True):
         assert torch.equal(a, b)
     hmepol("finetune", f"init={kept}", "epochs=1", "episodes=4", "horizon=20", "targets=1",
-           "config=0", "progress=false", f"hydra.run.dir={tmp_path / 'ft'}", cwd=tmp_path)  # fmt: skip
+           "config=0", "progress=false", f"hydra.run.dir={tmp_path / 'ft'}",
+           cwd=tmp_path)  # fmt: skip
     assert len(pd.read_csv(tmp_path / "ft" / "finetune.csv")) == 1
     (with_kit,) = export_runs(tmp_path / "runs", tmp_path / "moved", kits=True)
     assert (with_kit / CHECKPOINT).read_bytes() == (run / CHECKPOINT).read_bytes()

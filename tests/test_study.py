@@ -139,8 +139,9 @@ def test_a_changed_spec_or_commit_is_refused(tmp_path):
     assert len(out.stderr.strip().splitlines()) == 1 and "changed since" in out.stderr
 
 
-@pytest.mark.parametrize("bad, word", [({"alpha": 2}, "alpha=2.0"), ({"seeds_per_stage": 1}, "seeds_per_stage=1"),
-                                       ({"launcher": "cloud"}, "launcher='cloud'")])  # fmt: skip
+@pytest.mark.parametrize("bad, word", [
+    ({"alpha": 2}, "alpha=2.0"), ({"seeds_per_stage": 1}, "seeds_per_stage=1"),
+    ({"launcher": "cloud"}, "launcher='cloud'")])  # fmt: skip
 def test_a_bad_spec_is_one_line(tmp_path, bad, word):
     path = spec_file(tmp_path, n=2, stages=2)
     path.write_text(yaml.safe_dump({**yaml.safe_load(path.read_text()), **bad}))

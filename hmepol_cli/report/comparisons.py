@@ -71,7 +71,7 @@ class Paired:
     seeds_needed: float
 
     def answer(self, b: str = "b", a: str = "a") -> str:
-        """"b ends above a" / "below" when the interval excludes 0; else not resolved."""
+        """ "b ends above a" / "below" when the interval excludes 0; else not resolved."""
         if self.n < 2 or not math.isfinite(self.low):
             return f"undefined at n = {self.n}"
         if self.low > 0:
@@ -88,9 +88,7 @@ class Paired:
         )
 
 
-def paired(
-    a: Mapping[int, float], b: Mapping[int, float], target: float = 0.3
-) -> Paired:
+def paired(a: Mapping[int, float], b: Mapping[int, float], target: float = 0.3) -> Paired:
     """The paired comparison b - a over the seeds both arms have (finite values only)."""
     seeds = sorted(s for s in set(a) & set(b) if np.isfinite(a[s]) and np.isfinite(b[s]))
     d = np.array([b[s] - a[s] for s in seeds], dtype=float)
