@@ -86,14 +86,16 @@ def _need(spec: dict, key: str, kind: type, where: str):  # noqa: ANN202
     return value
 
 
-def load_spec(path: str | Path) -> Spec:
-    """The spec at ``path``; UserError naming the bad value and what is allowed."""
+def load_spec(path: str | Path, text: str | None = None, folder: Path | None = None) -> Spec:
+    """The spec at ``path`` (or its ``text``; ``folder`` in place of the one it names);
+    UserError naming the bad value and what is allowed."""
     path = Path(path)
     where = str(path)
-    try:
-        text = path.read_text()
-    except OSError:
-        raise UserError(f"study spec {where!r} does not exist or cannot be read") from None
+    if text is None:
+        try:
+            text = path.read_text()
+        except OSError:
+            raise UserError(f"study spec {where!r} does not exist or cannot be read") from None
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as error:
@@ -121,7 +123,7 @@ def load_spec(path: str | Path) -> Spec:
     launcher = str(raw.get("launcher", "local"))
     if launcher not in LAUNCHERS:
         raise UserError(f"{where}: launcher={launcher!r}; choose {', '.join(LAUNCHERS)}")
-    folder = Path(str(_need(raw, "folder", str, where)))
+    folder = folder or Path(str(_need(raw, "folder", str, where)))
     arms_raw = _need(raw, "arms", dict, where)
     if not isinstance(arms_raw, dict) or len(arms_raw) < 2:
         raise UserError(f"{where}: arms must map at least two names to a preset each")
@@ -309,6 +311,27 @@ def status_lines(st: Status) -> list[str]:
 
 
 # ------------------------------------------------------------------------------ running
+def study_report(root: Path, out_dir: Path) -> Path | None:
+    """``hmepol report`` of a study's folder (one with a pre-registration): its decisions stage
+    by stage and the paired differences, as study.md in ``out_dir``; None for another folder."""
+    registered = Path(root) / PREREGISTRATION
+    if not registered.is_file():
+        return None
+    written = yaml.safe_load(registered.read_text()) or {}
+    spec = load_spec(registered, str(written.get("spec", "")), folder=Path(root))
+    lines = status_lines(status(spec))
+    text = "\n".join([
+        f"# Study {spec.name}", "",
+        f"Pre-registered {written.get('written', '?')} at commit {written.get('commit', '?')}.",
+        "", *[f"- {line.strip()}" for line in lines[1:]], "",
+        "\"equal\" means no difference detected at the last stage, not equivalence "
+        "(docs/studies.md).", "",
+    ])  # fmt: skip
+    out = Path(out_dir) / "study.md"
+    out.write_text(text)
+    return out
+
+
 def code_commit() -> str:
     """The commit of the checkout the package runs from ("unknown" outside git)."""
     source = Path(__file__).resolve().parent.parent

@@ -200,3 +200,13 @@ def test_a_tiny_study_runs_is_interrupted_and_continues_to_its_decision(tmp_path
     assert st.complete_stages >= 1 and st.finished
     assert all(r.done == 4 for runs in st.runs.values() for r in runs.values())
     assert "AdaStop, stage" in out.stdout
+    # the report of the study's folder: its curves, and its decisions stage by stage
+    report = subprocess.run(
+        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "study"), "--out",
+         str(tmp_path / "report")], cwd=tmp_path, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert report.returncode == 0, report.stderr
+    study_md = (tmp_path / "report" / "study.md").read_text()
+    stages = [d.number for d in st.decisions]
+    assert all(f"AdaStop, stage {k} " in study_md for k in stages)
+    assert "study.md" in json.loads((tmp_path / "report" / "report.json").read_text())["files"]
