@@ -85,7 +85,7 @@ results:
 	hmepol report docs/results/collapse/finetune-epoch100 --out docs/results/collapse/report-finetune-epoch100
 	hmepol report docs/results/collapse/finetune-epoch75 --out docs/results/collapse/report-finetune-epoch75
 	hmepol report docs/results/precision --out docs/results/precision/report
-	$(PYTHON) docs/results/decisive/analysis.py --results RESULTS.md --figures docs/results/decisive/figures > /dev/null
+	hmepol study conf/study/decisive_corridor.yaml --status
 
 # Chapter 5 at the thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid) as
 # populations over hyperparameters (hydra/launcher=population groups each sweep's runs by their

@@ -68,6 +68,7 @@ commands:
   report    thesis figures:     hmepol report [RUNS_DIR] [--out DIR]
   finetune  TRPO on a goal:     hmepol finetune init=<run dir> goal=random
   show      draw a world:       hmepol show env=corridor [--out FILE]
+  study     a staged comparison: hmepol study conf/study/decisive_corridor.yaml [--status]
 
 `hmepol COMMAND --help` says what a command does and lists its options. Any Hydra override
 works with train, sweep and finetune (e.g. --cfg job, hydra/launcher=population).
@@ -487,9 +488,14 @@ def main(argv: list[str] | None = None) -> None:
             _report(rest)
         elif command == "show":
             _show(rest)
+        elif command == "study":
+            from hmepol_cli.study import main as study
+
+            study(rest)
         else:
             fail(
-                f"unknown command {command!r}; choose train, sweep, report, finetune or show "
+                f"unknown command {command!r}; choose train, sweep, report, finetune, show or "
+                "study "
                 "(hmepol --help)"
             )
     except UserError as error:

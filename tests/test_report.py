@@ -284,6 +284,29 @@ def test_labels_name_only_where_a_group_departs_from_the_main_experiment(tmp_pat
     ]  # fmt: skip
 
 
+def test_a_variant_alone_is_named_by_what_sets_it_apart_from_the_thesis(tmp_path):
+    # conf/algo/hmepol.yaml's trust region is the one-step gradient one: runs with the exact one
+    # are never plain "HMepol", with or without thesis runs beside them
+    def hmepol_run(folder: str, seed: int, trust_region: str) -> None:
+        run = write_run(tmp_path / folder, algo="hmepol", policy="recursive", seed=seed)
+        config = run / ".hydra" / "config.yaml"
+        config.write_text(config.read_text().replace(
+            "  lr: 1.0e-05\n", f"  lr: 1.0e-05\n  trust_region: {trust_region}\n"))  # fmt: skip
+
+    for seed in (0, 1):
+        hmepol_run("exact", seed, "exact")
+    alone = group_runs(discover_runs(tmp_path / "exact")[0])
+    assert [g.label for g in alone] == ["HMepol (algo.trust_region=exact)"]
+    for seed in (0, 1):
+        hmepol_run("thesis", seed, "gradient")
+    both = group_runs(discover_runs(tmp_path)[0])
+    assert sorted(g.label for g in both) == [
+        "HMepol (algo.trust_region=exact)", "HMepol (algo.trust_region=gradient)",
+    ]  # fmt: skip
+    thesis = group_runs(discover_runs(tmp_path / "thesis")[0])
+    assert [g.label for g in thesis] == ["HMepol"]
+
+
 def test_a_run_continued_for_more_epochs_groups_by_the_epochs_it_was_taken_to(tmp_path):
     write_run(tmp_path, algo="hmepol", seed=0, epochs=40, name="a")
     continued = write_run(tmp_path, algo="hmepol", seed=1, epochs=20, epochs_done=40, name="b")
@@ -977,7 +1000,8 @@ def test_exported_runs_rebuild_the_same_summary(tmp_path):
             run_dir = write_run(tmp_path / "runs", algo=algo, seed=seed, final=1.0 + seed / 10)
             (run_dir / "checkpoints").mkdir()
             (run_dir / "checkpoints" / "last.pt").write_bytes(b"weights")
-    exported = export_runs(tmp_path / "runs", tmp_path / "kept")
+    with pytest.warns(UserWarning, match="its final policy is not exported"):  # not a checkpoint
+        exported = export_runs(tmp_path / "runs", tmp_path / "kept")
     assert len(exported) == 4
     for run_dir in exported:
         assert not (run_dir / "checkpoints").exists()

@@ -32,8 +32,9 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     into ``out_dir``.
 
     Writes ``out_dir/index.html``, ``out_dir/figures/*.png``, ``summary.csv``,
-    ``differences.csv``, ``summary.md`` (and ``finetune.csv`` when there are fine-tuning runs),
-    and ``report.json``, the list of those files; returns the path of ``index.html``. The files
+    ``differences.csv``, ``summary.md`` (and ``finetune.csv`` when there are fine-tuning runs;
+    ``study.md``, its decisions stage by stage, for a study's folder), and ``report.json``,
+    the list of those files; returns the path of ``index.html``. The files
     of an earlier report in ``out_dir`` that this one does not write again are deleted; a
     non-empty ``out_dir`` without ``report.json`` is refused. Unusable runs are skipped with a
     warning and listed; a run found twice (same config, seed and rows) is counted once, and the
@@ -69,10 +70,15 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
         figures=len(figures),
         merged=len(merged),
     )
+    from hmepol_cli.study import study_report  # a study's folder: its decisions too
+
+    studies = [p for p in (study_report(root, out_dir) for root in roots) if p is not None]
+    for study in studies:
+        print(study.read_text().rstrip())
     index = write_index(
         out_dir, roots, groups, finetune_runs, skipped, merged, figures, tables, table_files, counts
     )
-    write_manifest(out_dir, [f.path for f in figures] + table_files + [index], previous)
+    write_manifest(out_dir, [f.path for f in figures] + table_files + studies + [index], previous)
     print(f"report: {counts.text()} -> {index}")
     return index
 

@@ -5,8 +5,12 @@
 For every run directory under SOURCE (a directory with run.json): config.yaml, run.json,
 epochs.csv and finetune.csv as they are, targets.json, steps.csv (diagnostics) gzipped as
 steps.csv.gz, and eval/final.npz with its positions stored as float16 (a heatmap bin is 0.04
-wide: float16's 1e-3 resolution on [-6, 6] changes no figure, and halves the file).
-Checkpoints, batches.csv and pictures are left out. ``hmepol
+wide: float16's 1e-3 resolution on [-6, 6] changes no figure, and halves the file), and the
+final policy as policy.pt: the last checkpoint's weights only (no optimizer state, a few MB at
+most), which ``hmepol finetune init=<exported run>`` starts from. The resume kit
+(checkpoints/last.pt, Adam state included) is copied only with ``--kits``: it lets a run go on
+on another machine, and it is what makes a clone heavy. batches.csv and pictures are left out.
+``hmepol
 report DEST`` then rebuilds every figure and table from these files alone. Unfinished runs are
 copied too (a later export brings them up to date); the report lists them as skipped. Every
 file is written whole or not at all, so an export interrupted while runs go on (a periodic save
@@ -18,28 +22,36 @@ from __future__ import annotations
 import argparse
 import gzip
 import io
+import warnings
 from pathlib import Path
 
 import numpy as np
 
+from hmepol_cli.errors import RunDirError
 from hmepol_cli.run import (
+    CHECKPOINT,
     CONFIG,
     EPOCHS_CSV,
     EVAL_DIR,
     FINAL_EVAL,
+    FINAL_POLICY,
     FINETUNE_CSV,
+    POLICY_KEYS,
     RUN_INFO,
     STEPS_CSV,
     TARGETS_JSON,
     atomic_write_bytes,
+    load_checkpoint,
     load_positions,
+    save_checkpoint,
 )
 
 KEPT = (CONFIG, RUN_INFO, EPOCHS_CSV, FINETUNE_CSV, TARGETS_JSON)
 
 
-def export_runs(source: Path, dest: Path) -> list[Path]:
-    """Copy the kept files of every run under ``source`` to the same place under ``dest``."""
+def export_runs(source: Path, dest: Path, kits: bool = False) -> list[Path]:
+    """Copy the kept files of every run under ``source`` to the same place under ``dest``: its
+    final policy too, and with ``kits`` its resume kit."""
     exported = []
     for marker in sorted(Path(source).rglob(RUN_INFO)):
         run_dir = marker.parent
@@ -60,6 +72,18 @@ def export_runs(source: Path, dest: Path) -> list[Path]:
             buffer = io.BytesIO()
             np.savez_compressed(buffer, **positions)
             atomic_write_bytes(target / EVAL_DIR / f"{FINAL_EVAL}.npz", buffer.getvalue())
+        checkpoint = run_dir / CHECKPOINT
+        if checkpoint.is_file():
+            try:
+                state = load_checkpoint(checkpoint)
+            except RunDirError as error:
+                warnings.warn(f"{error}: its final policy is not exported", stacklevel=2)
+                exported.append(target)
+                continue
+            save_checkpoint(target / FINAL_POLICY, {k: state[k] for k in POLICY_KEYS if k in state})
+            if kits:
+                (target / CHECKPOINT).parent.mkdir(exist_ok=True)
+                atomic_write_bytes(target / CHECKPOINT, checkpoint.read_bytes())
         exported.append(target)
     return exported
 
@@ -70,8 +94,11 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("source", type=Path, help="folder holding run directories")
     parser.add_argument("dest", type=Path, help="where their small files go")
+    parser.add_argument("--kits", action="store_true", help="also the resume kits "
+                        "(checkpoints/last.pt, Adam state included): only when moving to another "
+                        "machine would lose hours of compute")  # fmt: skip
     args = parser.parse_args(argv)
-    runs = export_runs(args.source, args.dest)
+    runs = export_runs(args.source, args.dest, args.kits)
     print(f"{len(runs)} runs exported to {args.dest}")
 
 

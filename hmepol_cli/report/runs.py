@@ -439,7 +439,10 @@ def label_groups(groups: list[Group]) -> None:
     from the algorithm's main experiment ("HMepol (policy=gru)"). A key's main value is the one
     most runs of the algorithm share; where two values tie, every group names its value. Keys
     fixed by the algorithm (HMepol always with the recursive policy, alpha-Mepol always with
-    CVaR) are left out of the label.
+    CVaR) are left out of the label. A switch of how the algorithm works (``algo.trust_region``,
+    ``policy.bptt``, ...) in which every group departs from the algorithm's own settings (the
+    thesis') is named too: the exact trust region alone is "HMepol (algo.trust_region=exact)",
+    never plain "HMepol".
     """
     for env in {g.env for g in groups}:
         members = [g for g in groups if g.env == env]
@@ -448,13 +451,39 @@ def label_groups(groups: list[Group]) -> None:
             runs = [g.first for g in same]
             keys = [k for k in varying_keys(runs) if k not in ("env.name", "algo.name", "wind")]
             main = {k: _main_value(same, k) for k in keys}
+            shared = [k for k in _switches_departed(same, algo) if k not in keys]
             for group in same:
                 parts = [
                     f"{SHORT_NAMES.get(k, k)}={override_text(group.first.config.get(k))}"
                     for k in keys
                     if main[k] is None or repr(group.first.config.get(k)) != main[k]
+                ] + [
+                    f"{SHORT_NAMES.get(k, k)}={override_text(group.first.config[k])}"
+                    for k in shared
                 ]
                 group.label = algo_label(algo) + (f" ({', '.join(parts)})" if parts else "")
+
+
+# Keys that say which rules or which network a run had, not which variant of its algorithm.
+NOT_SWITCHES = {"algo.name", "policy.name", "algo.backtracking", "algo.backtrack_restore"}
+
+
+def _switches_departed(groups: list[Group], algo: str) -> list[str]:
+    """The algorithm's switches (``algo.*`` and ``policy.*`` keys whose own value is a word,
+    true/false or null) in which every run of ``groups`` departs from conf/algo/<algo>.yaml."""
+    from hmepol_cli.report.rules import algo_defaults  # rules reads groups: imported late
+
+    defaults = algo_defaults(algo) or {}
+    runs = [r for g in groups for r in g.runs]
+    out = []
+    for key, value in defaults.items():
+        if key in NOT_SWITCHES or not key.startswith(("algo.", "policy.")):
+            continue
+        if value is not None and not isinstance(value, str | bool):
+            continue
+        if all(key in r.config and repr(r.config[key]) != repr(value) for r in runs):
+            out.append(key)
+    return out
 
 
 def _main_value(groups: list[Group], key: str) -> str | None:

@@ -13,7 +13,7 @@ import torch
 
 from hmepol_cli.errors import RunDirError
 from hmepol_cli.run.io import atomic_write_bytes
-from hmepol_cli.run.layout import CHECKPOINT, epoch_checkpoint, run_config
+from hmepol_cli.run.layout import CHECKPOINT, FINAL_POLICY, epoch_checkpoint, run_config
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -45,7 +45,8 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
 
 def resolve_checkpoint(path: Path | str) -> tuple[Path, Path]:
     """(run directory, checkpoint file) from a run directory, a checkpoint file, or
-    ``<run directory>@<epoch>``: the checkpoint kept after that many epochs."""
+    ``<run directory>@<epoch>``: the checkpoint kept after that many epochs. An exported run
+    without its checkpoints gives its final policy (policy.pt)."""
     text = str(path)
     run, at, epoch = text.rpartition("@") if "@" in text else (text, "", "")
     path = Path(run)
@@ -67,6 +68,8 @@ def resolve_checkpoint(path: Path | str) -> tuple[Path, Path]:
         return run_dir, path
     run_config(path)  # a clear error for a folder that is not a run
     checkpoint = path / CHECKPOINT
+    if not checkpoint.is_file() and (path / FINAL_POLICY).is_file():
+        return path, path / FINAL_POLICY
     if not checkpoint.is_file():
         raise RunDirError(f"run directory {str(path)!r} has no checkpoint yet ({CHECKPOINT})")
     return path, checkpoint

@@ -13,6 +13,7 @@ A run directory holds::
     steps.csv            train, with diagnostics: one row per off-policy step tried
     checkpoints/last.pt  train: policy, optimizer and random state (loaded with weights_only=True)
     checkpoints/epoch_<n>.pt  train, every checkpoint.keep_every epochs: the same after n epochs
+    policy.pt            an exported run: its final policy, weights only (no optimizer state)
     eval/<name>.npz      train: positions_c<c>, (n, T + 1, 2) fresh rollouts per configuration
     eval/<name>/*.png    train: heatmaps and trajectory plots
     finetune.csv         finetune: one row per (epoch, configuration, target)
@@ -42,6 +43,8 @@ STEPS_CSV = "steps.csv"
 FINETUNE_CSV = "finetune.csv"
 TARGETS_JSON = "targets.json"
 CHECKPOINT = Path("checkpoints") / "last.pt"
+FINAL_POLICY = "policy.pt"  # what an export keeps of a checkpoint: the policy's weights
+POLICY_KEYS = ("epoch", "policy", "state_dim", "action_dim")
 
 
 def epoch_checkpoint(epochs: int) -> Path:

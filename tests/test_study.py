@@ -1,0 +1,212 @@
+"""``hmepol study``: the statistics of a comparison against hand computations, AdaStop's
+decisions on hand-built runs, the pre-registration's refusals, the kept decisive experiment read
+by --status, and one tiny study end to end (interrupted, then continued)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from scipy import stats
+
+from hmepol_cli.errors import UserError
+from hmepol_cli.report.comparisons import paired, sign_flip_p, window_metric
+from hmepol_cli.study import load_spec, preregister, status, status_lines, sweep_command
+from tests.test_cli import TINY
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def spec_file(folder: Path, n: int, stages: int, epochs: int = 5, **extra: object) -> Path:
+    spec = {
+        "folder": str(folder / "runs"), "launcher": "population", "seeds_per_stage": n,
+        "stages": stages, "alpha": 0.05, "epochs": epochs, "permutations": 2000,
+        "metric": {"columns": ["entropy_c0", "entropy_c1"], "epochs": [epochs - 2, epochs - 1]},
+        "arms": {"a": {"preset": "demo"}, "b": {"preset": "demo", "overrides": ["algo=hmepol"]}},
+        "comparisons": [["b", "a"]],
+    }  # fmt: skip
+    spec.update(extra)
+    path = folder / "spec.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
+
+
+def make_run(folder: Path, seed: int, level: float, done: int, epochs: int = 5) -> Path:
+    """A run directory with ``done`` epochs whose entropies are ``level`` (+ 0.5 in c1)."""
+    run = folder / f"seed-{seed}"
+    run.mkdir(parents=True, exist_ok=True)
+    status = "finished" if done >= epochs else "interrupted"
+    (run / "run.json").write_text(json.dumps({"seed": seed, "status": status, "epochs": epochs}))
+    pd.DataFrame({"epoch": range(done), "entropy_c0": [level] * done,
+                  "entropy_c1": [level + 0.5] * done, "seconds": [2.0] * done}).to_csv(
+        run / "epochs.csv", index=False)  # fmt: skip
+    return run
+
+
+def test_paired_difference_matches_a_hand_computation():
+    # d = (1, 2, 3): mean 2, sd 1; t_{0.975, 2} = 4.3027; of the 8 sign flips only (+,+,+) and
+    # (-,-,-) reach |mean| >= 2
+    r = paired({0: 0.0, 1: 0.0, 2: 0.0}, {0: 1.0, 1: 2.0, 2: 3.0})
+    half = 4.302652729911275 / math.sqrt(3)
+    assert (r.n, r.mean) == (3, pytest.approx(2.0))
+    assert (r.low, r.high) == (pytest.approx(2 - half), pytest.approx(2 + half))
+    assert r.p == pytest.approx(2 / 8)
+    need = next(k for k in range(2, 1000) if stats.t.ppf(0.975, k - 1) / math.sqrt(k) <= 0.3)
+    assert r.seeds_needed == need
+    assert r.answer() == f"not resolved at n = 3 (a ±0.3 half-width needs {need} seeds)"
+    close = paired({0: 0.0, 1: 0.0, 2: 0.0}, {0: 1.0, 1: 1.1, 2: 0.9})  # [0.75, 1.25]
+    assert close.answer("b", "a") == "b ends above a"
+
+
+def test_sign_flip_p_counts_every_assignment():
+    d = np.array([0.5, -0.2, 1.1, 0.3])
+    flips = [np.mean(np.array(s) * np.abs(d)) for s in itertools.product((-1, 1), repeat=4)]
+    expected = np.mean([abs(m) >= abs(d.mean()) - 1e-12 for m in flips])
+    assert sign_flip_p(d) == pytest.approx(expected)
+
+
+def test_a_failed_run_is_measured_over_its_own_last_epochs():
+    table = pd.DataFrame({"epoch": range(6), "x": [0, 1, 2, 3, 4, 5.0]})
+    assert window_metric(table, ["x"], 8, 9, failed=True) == pytest.approx(4.5)
+    assert window_metric(table, ["x"], 2, 3) == pytest.approx(2.5)
+
+
+def test_clearly_different_arms_are_decided_after_stage_one(tmp_path):
+    spec = load_spec(spec_file(tmp_path, n=4, stages=3))
+    rng = np.random.default_rng(0)
+    for s in range(4):
+        make_run(spec.arms["a"].folder, s, 1.0 + 0.01 * rng.standard_normal(), 5)
+        make_run(spec.arms["b"].folder, s, 3.0 + 0.01 * rng.standard_normal(), 5)
+    st = status(spec)
+    assert st.complete_stages == 1 and len(st.decisions) == 1
+    assert st.decisions[0].decisions == {("b", "a"): "larger"} and st.finished
+    # the other way round, the other word
+    spec = load_spec(spec_file(tmp_path, n=4, stages=3, comparisons=[["a", "b"]]))
+    assert status(spec).decisions[0].decisions == {("a", "b"): "smaller"}
+
+
+def test_identical_arms_are_equal_at_the_last_stage(tmp_path):
+    spec = load_spec(spec_file(tmp_path, n=2, stages=2))
+    for s in range(4):
+        for arm in "ab":
+            make_run(spec.arms[arm].folder, s, 1.0 + 0.3 * s, 5)
+    st = status(spec)
+    assert [d.decisions[("b", "a")] for d in st.decisions] == ["continue", "equal"]
+    assert st.finished and st.complete_stages == 2
+    assert any("not proof of equivalence" in line for line in status_lines(st))
+
+
+def test_an_interrupted_stage_continues_with_its_unfinished_seeds(tmp_path):
+    spec = load_spec(spec_file(tmp_path, n=2, stages=3))
+    for s in range(2):
+        for arm in "ab":
+            make_run(spec.arms[arm].folder, s, 1.0 + 0.3 * s, 5)
+    make_run(spec.arms["a"].folder, 2, 1.0, 5)
+    make_run(spec.arms["a"].folder, 3, 1.0, 3)  # interrupted at 3 of 5 epochs
+    st = status(spec)
+    assert st.complete_stages == 1 and not st.finished
+    assert st.runs["a"][3].done == 3 and not st.runs["a"][3].complete
+    # stage 2 left: a's seed 3 (2 epochs) and b's seeds 2, 3 (5 each) at 2 s an epoch, a
+    # population per arm: 2 x 2 s + 5 x 2 s
+    assert st.stage_hours(2) == pytest.approx((2 * 2 + 5 * 2) / 3600)
+    command = sweep_command(spec, spec.arms["a"], [2, 3])
+    assert "seed=2,3" in command and f"hydra.sweep.dir={spec.arms['a'].folder}" in command
+
+
+def test_a_changed_spec_or_commit_is_refused(tmp_path):
+    path = spec_file(tmp_path, n=2, stages=2)
+    written = preregister(load_spec(path), "c0ffee")
+    assert yaml.safe_load(written.read_text())["spec"] == path.read_text()
+    preregister(load_spec(path), "c0ffee")  # the same: accepted
+    with pytest.raises(UserError, match="commit"):
+        preregister(load_spec(path), "beef")
+    path.write_text(path.read_text().replace("alpha: 0.05", "alpha: 0.1"))
+    with pytest.raises(UserError, match="changed since its pre-registration"):
+        preregister(load_spec(path), "c0ffee")
+    out = subprocess.run([sys.executable, "-m", "hmepol_cli.cli", "study", str(path)],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and "changed since" in out.stderr
+
+
+@pytest.mark.parametrize("bad, word", [
+    ({"alpha": 2}, "alpha=2.0"), ({"seeds_per_stage": 1}, "seeds_per_stage=1"),
+    ({"launcher": "cloud"}, "launcher='cloud'")])  # fmt: skip
+def test_a_bad_spec_is_one_line(tmp_path, bad, word):
+    path = spec_file(tmp_path, n=2, stages=2)
+    path.write_text(yaml.safe_dump({**yaml.safe_load(path.read_text()), **bad}))
+    out = subprocess.run([sys.executable, "-m", "hmepol_cli.cli", "study", str(path), "--status"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 2 and word in out.stderr and "Traceback" not in out.stderr
+
+
+def test_the_decisive_experiment_reads_as_in_results():
+    out = subprocess.run(
+        [sys.executable, "-m", "hmepol_cli.cli", "study", "conf/study/decisive_corridor.yaml",
+         "--status"], cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    assert "-0.149 [-0.606, +0.309], sign-flip p 0.45 (n = 8)" in out.stdout
+    assert "needs 16 seeds" in out.stdout
+    assert "post-hoc" in out.stdout and "stage 2 (8 seeds an arm)" in out.stdout
+
+
+@pytest.mark.slow
+def test_a_tiny_study_runs_is_interrupted_and_continues_to_its_decision(tmp_path):
+    spec = {
+        "folder": str(tmp_path / "study"), "launcher": "population", "seeds_per_stage": 2,
+        "stages": 2, "alpha": 0.05, "epochs": 4, "metric": {"columns": ["entropy"]},
+        "overrides": [*TINY, "algo.trajectories=20", "algo.horizon=60", "env=slope"],
+        "arms": {"mepol": {"preset": "demo", "overrides": ["algo=mepol"]},
+                 "fast": {"preset": "demo", "overrides": ["algo=mepol", "algo.lr=1e-2"]}},
+    }  # fmt: skip
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    command = [sys.executable, "-m", "hmepol_cli.cli", "study", str(path)]
+    proc = subprocess.Popen(command, cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.time() + 240
+    tables = lambda: list((tmp_path / "study").glob("*/*/epochs.csv"))  # noqa: E731
+    while not any(len(t.read_text().splitlines()) >= 2 for t in tables()):
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=240)
+    assert proc.returncode == 143 and "Traceback" not in err, err
+    (first,) = [t for t in tables() if len(t.read_text().splitlines()) >= 2]
+    kept = pd.read_csv(first)
+    assert (tmp_path / "study" / "preregistration.yaml").exists()
+
+    out = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    again = pd.read_csv(first)
+    assert len(again) == 4  # continued to the end, its first rows kept as written
+    info = json.loads((first.parent / "run.json").read_text())
+    assert info["interruption"]["signal"] == "SIGTERM"  # stopped, then resumed, not restarted
+    timing = [c for c in kept.columns if c.endswith("seconds") or c == "wall_time"]
+    pd.testing.assert_frame_equal(again.iloc[: len(kept)].drop(columns=timing),
+                                  kept.drop(columns=timing))  # fmt: skip
+    st = status(load_spec(path))
+    assert st.complete_stages >= 1 and st.finished
+    assert all(r.done == 4 for runs in st.runs.values() for r in runs.values())
+    assert "AdaStop, stage" in out.stdout
+    # the report of the study's folder: its curves, and its decisions stage by stage
+    report = subprocess.run(
+        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "study"), "--out",
+         str(tmp_path / "report")], cwd=tmp_path, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert report.returncode == 0, report.stderr
+    study_md = (tmp_path / "report" / "study.md").read_text()
+    stages = [d.number for d in st.decisions]
+    assert all(f"AdaStop, stage {k} " in study_md for k in stages)
+    assert "study.md" in json.loads((tmp_path / "report" / "report.json").read_text())["files"]
