@@ -7,13 +7,12 @@ thesis').
 
 from __future__ import annotations
 
-from functools import cache
 from typing import Any
 
 from hmepol_cli.config import AlgoConfig, EnvConfig, backtracking_rule
 from hmepol_cli.envs import ENVIRONMENTS, NavigationWorld
 from hmepol_cli.envs.base import edge_rule
-from hmepol_cli.errors import ConfigError
+from hmepol_cli.report.defaults import algo_defaults
 from hmepol_cli.report.runs import Group, varying_keys
 
 # Today's defaults of the rules (the schema's); a run made with another is said to be.
@@ -63,24 +62,6 @@ def old_rules_text(groups: list[Group]) -> str:
             f"{label} ({listed(rules)})" for label, rules in made.items()
         )
     return f"{text}; today's defaults are {today}."
-
-
-@cache
-def algo_defaults(algo: str) -> dict[str, Any] | None:
-    """The flattened config ``algo=<algo>`` composes to (None where it cannot: an algorithm of
-    another checkout)."""
-    from omegaconf import OmegaConf
-
-    from hmepol_cli.checks import compose
-    from hmepol_cli.config import register_configs
-    from hmepol_cli.run import flat_config
-
-    register_configs()
-    try:
-        cfg = compose("config", [f"algo={algo}"])
-    except ConfigError:
-        return None
-    return flat_config(OmegaConf.to_container(cfg, resolve=False))
 
 
 def thesis_settings(groups: list[Group]) -> set[str]:

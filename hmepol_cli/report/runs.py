@@ -20,6 +20,7 @@ import pandas as pd
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
 from hmepol_cli.finetune.task import GoalTask, RewardTask
+from hmepol_cli.report.defaults import algo_defaults
 from hmepol_cli.report.stats import FINAL_FRACTION, final_value
 from hmepol_cli.run import CHECKPOINT
 
@@ -471,8 +472,6 @@ NOT_SWITCHES = {"algo.name", "policy.name", "algo.backtracking", "algo.backtrack
 def _switches_departed(groups: list[Group], algo: str) -> list[str]:
     """The algorithm's switches (``algo.*`` and ``policy.*`` keys whose own value is a word,
     true/false or null) in which every run of ``groups`` departs from conf/algo/<algo>.yaml."""
-    from hmepol_cli.report.rules import algo_defaults  # rules reads groups: imported late
-
     defaults = algo_defaults(algo) or {}
     runs = [r for g in groups for r in g.runs]
     out = []
