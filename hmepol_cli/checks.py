@@ -69,6 +69,14 @@ def _hydra_message(error: Exception, config_name: str = "config") -> str:
         kind = _schema_kind(name.lstrip("+~"), config_name)
         return f"{name}={value!r} is not allowed: {name} takes {kind}"
     lines = [line.strip() for line in text.splitlines() if line.strip()]
+    unread = re.search(r"LexerNoViableAltException: (\S+?)=(.*)", text)
+    if unread or "no viable alternative" in text or "mismatched input" in text:
+        name, value = unread.groups() if unread else (None, None)
+        quoting = "quote a value with spaces or other letters: key='value'"
+        if name is None:
+            return f"{lines[0] if lines else type(error).__name__}: cannot read it ({quoting})"
+        kind = _schema_kind(name.lstrip("+~"), config_name)
+        return f"{name}={value!r} cannot be read ({quoting}); {name} takes {kind}"
     return lines[0] if lines else type(error).__name__
 
 
@@ -197,12 +205,10 @@ def check_train(overrides: list[str]) -> DictConfig:
     from hmepol_cli.config import Config
 
     check_output_dirs(overrides)
-    resume = next((override_value(o) for o in overrides if o.startswith("resume=")), None)
-    if resume not in (None, "", "null"):
-        run_config(Path(resume))  # a clear error for a folder that is not a run
-    cfg = compose("config", overrides)
+    cfg = compose("config", overrides)  # Hydra's reading of every value, quoted paths too
     check_known_keys(cfg, OmegaConf.structured(Config))
     if cfg.resume is not None:
+        run_config(Path(cfg.resume))  # a clear error for a folder that is not a run
         cfg = resumed_config(cfg, Path(cfg.resume), overrides)
     validate(cfg)
     if cfg.resume is None:  # a continued run keeps what it started with

@@ -38,6 +38,8 @@ from hmepol_cli.checks import (
     check_sweep,
     check_train,
     compose,
+    override_value,
+    unquote,
 )
 from hmepol_cli.config import register_configs, validate
 from hmepol_cli.errors import (
@@ -107,6 +109,42 @@ Plugins.instance().register(PopulationLauncher)
 def fail(message: str, code: int = 2) -> None:
     print(f"hmepol: error: {message}", file=sys.stderr)
     raise SystemExit(code)
+
+
+DEBUG_ENV = "HYDRA_FULL_ERROR"  # =1 (or --debug): an unexpected error keeps its traceback
+
+
+def debugging() -> bool:
+    return os.environ.get(DEBUG_ENV) == "1"
+
+
+def unexpected_line(error: BaseException) -> str:
+    """An exception no check foresaw, as one line; its traceback goes to a log file, whose
+    path the line gives (a temporary folder's, so nothing is left in the user's folders)."""
+    import tempfile
+    import traceback
+
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path = Path(tempfile.gettempdir()) / f"hmepol-error-{stamp}-{os.getpid()}.log"
+    text = "".join(traceback.format_exception(type(error), error, error.__traceback__))
+    try:
+        path.write_text(f"hmepol {' '.join(sys.argv[1:])}\n{text}")
+        where = f"the traceback is in {path}"
+    except OSError:
+        where = "the traceback could not be written"
+    first = (str(error).strip().splitlines() or [""])[0][:200]
+    return (
+        f"unexpected {type(error).__name__}{': ' + first if first else ''} (a bug in hmepol; "
+        f"{where}; {DEBUG_ENV}=1 or --debug prints it)"
+    )
+
+
+def guard_unexpected(error: Exception) -> None:
+    """The top-level guard of every command: an unexpected exception is one line and exit 1,
+    or, when debugging, its traceback."""
+    if debugging():
+        raise error
+    fail(unexpected_line(error), code=1)
 
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
@@ -291,6 +329,11 @@ def train_app(cfg: DictConfig) -> list[str] | None:
                 _report_job("failed", cfg, str(error))
                 return None
             fail(str(error), code=1 if isinstance(error, RunFailure | StorageError) else 2)
+        except Exception as error:  # a bug: one line and a log file, or the traceback
+            if multirun and not debugging():
+                _report_job("failed", cfg, unexpected_line(error))
+                return None
+            guard_unexpected(error)
         except Interrupted as error:
             _report_job("interrupted", cfg, str(error))
             print(f"hmepol: {interrupted_line(error)}", file=sys.stderr, flush=True)
@@ -306,7 +349,7 @@ def _sweep(args: list[str], n_jobs: int = 0) -> None:
         [] if any(a.startswith("hydra/launcher=") for a in args) else ["hydra/launcher=local"]
     )
     sweep_dir = next(
-        (a.partition("=")[2] for a in args if a.startswith("hydra.sweep.dir=")), "outputs/sweep"
+        (override_value(a) for a in args if a.startswith("hydra.sweep.dir=")), "outputs/sweep"
     )
     Path(sweep_dir).mkdir(parents=True, exist_ok=True)
     status = Path(sweep_dir) / f".hmepol-sweep-{secrets.token_hex(4)}.jsonl"
@@ -352,6 +395,8 @@ def finetune_app(cfg: DictConfig) -> str | None:
             return str(finetune(cfg))
         except UserError as error:
             fail(str(error))
+        except Exception as error:  # a bug: one line and a log file, or the traceback
+            guard_unexpected(error)
         except Interrupted as error:
             print(f"hmepol: {error}: the fine-tuning's rows so far are kept; running it again "
                   "starts it over", file=sys.stderr, flush=True)  # fmt: skip
@@ -381,11 +426,11 @@ def _report(args: list[str]) -> None:
         "--out", default=None, help="report folder (default: the first RUNS folder's report/)"
     )
     ns = parser.parse_args(args)
-    roots = [Path(r) for r in ns.runs]
+    roots = [Path(unquote(r)) for r in ns.runs]  # a path quoted as for Hydra reads the same
     for runs in roots:
         if not runs.is_dir():
             fail(f"{str(runs)!r} is not a directory of runs")
-    out = Path(ns.out) if ns.out else roots[0] / "report"
+    out = Path(unquote(ns.out)) if ns.out else roots[0] / "report"
     if out.exists() and not out.is_dir():
         fail(f"--out {str(out)!r} is a file; give a folder for the report")
     try:
@@ -458,6 +503,9 @@ def package_version() -> str:
 
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if "--debug" in argv:  # the traceback of an unexpected error, Hydra's included
+        argv = [a for a in argv if a != "--debug"]
+        os.environ[DEBUG_ENV] = "1"
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         return
@@ -494,6 +542,8 @@ def main(argv: list[str] | None = None) -> None:
             )
     except UserError as error:
         fail(str(error))
+    except Exception as error:  # a bug: one line and a log file, or the traceback
+        guard_unexpected(error)
 
 
 if __name__ == "__main__":

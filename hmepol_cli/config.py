@@ -271,9 +271,10 @@ class Rule:
                      "text": "text", "ints": "a list of whole numbers",
                      "floats": "a list of finite numbers"}  # fmt: skip
             text = words[self.kind]
-            bounds = [f"{op} {b:g}" for op, b in ((">=", self.at_least), (">", self.above),
-                      ("<", self.below), ("<=", self.at_most)) if b is not None]  # fmt: skip
-            if self.kind == "int" and self.below is None and self.at_most is None:
+            pairs = ((">=", self.at_least), (">", self.above), ("<", self.below),
+                     ("<=", self.at_most))  # fmt: skip
+            bounds = [f"{op} {_number_text(b)}" for op, b in pairs if b is not None]
+            if self.kind in ("int", "ints") and self.below is None and self.at_most is None:
                 bounds.append(f"<= {INT_MAX}")
             if bounds:
                 text += (" each" if self.kind in ("ints", "floats") else "") + " " + " and ".join(
@@ -284,6 +285,10 @@ class Rule:
             if self.example:
                 text += f", e.g. {self.example}"
         return text + (" (or null)" if self.null else "")
+
+
+def _number_text(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() else f"{value:g}"
 
 
 def _registry(module: str, name: str):
@@ -509,7 +514,7 @@ def check_value(key: str, value: object, rule: Rule) -> None:
 
 def check_rules(cfg: DictConfig, cls: type) -> None:
     """Every setting of a composed config against its rule, in the schema's order."""
-    for key in schema_fields(cls):
+    for key in sorted(schema_fields(cls), key=lambda k: k.count(".")):  # wind before env.wind
         rule = rules_of(cls)[key]
         parent = OmegaConf.select(cfg, key.rpartition(".")[0]) if "." in key else cfg
         if parent is None:  # a group left at null (finetune's env, an unused logger)
