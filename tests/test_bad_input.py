@@ -216,3 +216,39 @@ def test_a_report_into_a_file_is_refused(tmp_path, capsys):
     assert_one_line(
         *run(capsys, "report", str(tmp_path / "runs"), "--out", str(target)), "is a file"
     )
+
+
+def _broken(*args, **kwargs):
+    raise RuntimeError("a bug nobody foresaw")
+
+
+@pytest.mark.parametrize("command", ["show", "report", "train"])
+def test_an_unexpected_error_is_one_line_and_a_log_with_its_traceback(
+    tmp_path, capsys, monkeypatch, command
+):
+    import hmepol_cli.cli as cli
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    monkeypatch.setattr(cli, {"show": "_show", "report": "_report", "train": "_train"}[command],
+                        _broken)  # fmt: skip
+    args = [f"hydra.run.dir={tmp_path / 'run'}"] if command == "train" else []
+    code, text = run(capsys, command, *args)
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert code == 1, text
+    assert len(lines) == 1 and "unexpected RuntimeError: a bug nobody foresaw" in lines[0], text
+    assert "Traceback" not in text
+    log = lines[0].split("the traceback is in ")[1].split(";")[0]
+    logged = open(log).read()
+    assert "Traceback" in logged and "a bug nobody foresaw" in logged and "_broken" in logged
+
+
+def test_debug_keeps_the_traceback(monkeypatch):
+    import hmepol_cli.cli as cli
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    monkeypatch.setattr(cli, "_show", _broken)
+    with pytest.raises(RuntimeError, match="a bug nobody foresaw"):
+        main(["show", "--debug"])
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "1")
+    with pytest.raises(RuntimeError, match="a bug nobody foresaw"):
+        main(["show"])

@@ -112,7 +112,7 @@ def test_a_field_without_a_rule_is_found(monkeypatch):
     assert set(schema_fields(Config)) - set(rules_of(Config)) == {"epochs"}
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=40, deadline=None)
 @given(st.data())
 def test_train_refuses_any_bad_value_of_any_field(data):
     key = data.draw(st.sampled_from(TRAIN_FIELDS), label="field")
@@ -122,7 +122,7 @@ def test_train_refuses_any_bad_value_of_any_field(data):
     assert_refused(key, code, text, left)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.data())
 def test_finetune_refuses_any_bad_value_of_any_field(data):
     key = data.draw(st.sampled_from(FINETUNE_FIELDS), label="field")
