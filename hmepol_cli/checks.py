@@ -10,7 +10,6 @@ the names it is close to, the options of a group, what kind of value a key takes
 from __future__ import annotations
 
 import re
-import types
 from pathlib import Path
 
 from hydra.errors import HydraException

@@ -97,13 +97,17 @@ def _unique_resolver() -> str:
     return secrets.token_hex(3)
 
 
-OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
-OmegaConf.register_new_resolver("hmepol_job_dir", _job_dir_resolver, replace=True)
-OmegaConf.register_new_resolver("hmepol_unique", _unique_resolver, replace=True)
-register_configs()
-# Hydra scans the hydra_plugins namespace for launchers, which an editable install hides from
-# it: register ours by hand (its public API; a no-op when the scan found it).
-Plugins.instance().register(PopulationLauncher)
+def setup() -> None:
+    """What composing hmepol's configs needs: its resolvers, the schema in Hydra's config
+    store and the population launcher. ``main`` calls it; so does anything else that composes
+    (tests, benchmarks). Importing this module does none of it. Safe to call twice."""
+    OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
+    OmegaConf.register_new_resolver("hmepol_job_dir", _job_dir_resolver, replace=True)
+    OmegaConf.register_new_resolver("hmepol_unique", _unique_resolver, replace=True)
+    register_configs()
+    # Hydra scans the hydra_plugins namespace for launchers, which an editable install hides
+    # from it: register ours by hand (its public API; a no-op when the scan found it).
+    Plugins.instance().register(PopulationLauncher)
 
 
 def fail(message: str, code: int = 2) -> None:
@@ -514,6 +518,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     command, rest = argv[0], argv[1:]
     warnings.formatwarning = _one_line_warning
+    setup()
     try:
         if command == "train":
             if not _asks_for_help(rest):

@@ -387,7 +387,7 @@ RULES: dict[str, Rule] = {
     "seed": _whole(0),
     "seeds": Rule("ints", at_least=0, at_most=INT_MAX, null=True, nonempty=True,
                   example="seeds=[0,1,2]"),  # fmt: skip
-    "members": Rule("other", null=True, example='a list of override strings, e.g. ["seed=0 wind=0.1"]',
+    "members": Rule("other", null=True, example='override strings, e.g. ["seed=0 wind=0.1"]',
                     bad=("3",)),  # fmt: skip
     "chunk_members": _whole(0),
     "device": _choice(*("cpu", "cuda", "auto")),

@@ -40,7 +40,7 @@ TRAIN = [
     (["policy.init_log_std=nan"], "policy.init_log_std=nan"),
     (["alarms.stall_epochs=0"], "alarms.stall_epochs=0"),
     (["algo.trust_region=loose"], "algo.trust_region='loose'"),
-    (["algo.adam_reset=never"], "algo.adam_reset='never' is not allowed: algo.adam_reset takes one of: epoch (or null)"),
+    (["algo.adam_reset=never"], "algo.adam_reset takes one of: epoch (or null)"),
     # Gymnasium worlds: the id, the indices, the class of configurations
     (["env=gym"], "env.id"),
     (["env=gym", "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered"),

@@ -91,7 +91,9 @@ def assert_refused(key: str, code: int, text: str, left: list[str]) -> None:
 
 TRAIN_FIELDS = schema_fields(Config)
 # finetune's env.* and policy.* share train's rules (the same ENV_RULES, POLICY_RULES)
-FINETUNE_FIELDS = [k for k in schema_fields(FinetuneConfig) if not k.startswith(("env.", "policy."))]
+FINETUNE_FIELDS = [
+    k for k in schema_fields(FinetuneConfig) if not k.startswith(("env.", "policy."))
+]
 
 
 @pytest.mark.parametrize("cls", [Config, FinetuneConfig], ids=["train", "finetune"])
@@ -182,3 +184,23 @@ def test_hydra_quoting_is_read_the_same_everywhere():
     assert unquote("'/runs/x y'") == "/runs/x y" and unquote("/runs/'x'") == "/runs/'x'"
     assert override_value("hydra.sweep.dir='out/my sweep'") == "out/my sweep"
     assert Path(override_value("init='/r/a b@3'")).name == "a b@3"
+
+
+def test_importing_the_cli_registers_nothing():
+    """The schema, the resolvers and the launcher are registered by setup() (main calls it),
+    not by importing the module."""
+    import subprocess
+    import sys
+
+    code = (
+        "import hmepol_cli.cli\n"
+        "from hydra.core.config_store import ConfigStore\n"
+        "from omegaconf import OmegaConf\n"
+        "assert 'config_schema.yaml' not in ConfigStore.instance().repo\n"
+        "assert not OmegaConf.has_resolver('hmepol_run_dir')\n"
+        "hmepol_cli.cli.setup()\n"
+        "assert 'config_schema.yaml' in ConfigStore.instance().repo\n"
+        "assert OmegaConf.has_resolver('hmepol_run_dir')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
