@@ -32,6 +32,7 @@ def compose(config_name: str, overrides: list[str]) -> DictConfig:
     from hydra.core.global_hydra import GlobalHydra
 
     task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    _check_flags(task, config_name)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
@@ -46,6 +47,25 @@ def compose(config_name: str, overrides: list[str]) -> DictConfig:
         ) from None
     finally:
         GlobalHydra.instance().clear()
+
+
+def _check_flags(overrides: list[str], config_name: str) -> None:
+    """A true-or-false setting takes true or false (OmegaConf would read 2 as true)."""
+    from hmepol_cli.config import rules_of
+
+    rules = rules_of(_schema(config_name))
+    for item in overrides:
+        key = item.lstrip("+~").partition("=")[0]
+        rule = rules.get(key)
+        if rule is None or rule.kind != "bool":
+            continue
+        try:
+            (override,) = sweeps.parse([item])
+        except (HydraException, ValueError):
+            continue  # Hydra's own message, below
+        if not override.is_sweep_override() and not isinstance(override.value(), bool):
+            value = item.partition("=")[2]
+            raise ConfigError(f"{key}={value!r} is not allowed: {key} takes {rule.describe()}")
 
 
 def _hydra_message(error: Exception, config_name: str = "config") -> str:

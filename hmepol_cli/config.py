@@ -339,7 +339,7 @@ ENV_RULES: dict[str, Rule] = {
     "id": _text(null=True, **_GYM),
     "features": Rule("ints", at_least=0, null=True, nonempty=True, example="[0,1]", **_GYM),
     "configs": Rule("other", null=True, example="a list of keyword sets, e.g. [{},{gravity:5}]",
-                    bad=("[{nosuch_keyword:1}]",), **_GYM),  # fmt: skip
+                    bad=("3",), **_GYM),  # fmt: skip
     "probs": Rule("floats", at_least=0, null=True, nonempty=True, **_GYM),
     "projection": Rule("ints", at_least=0, null=True, example="[0,1]", **_GYM),
     "workers": _whole(0, at_most=1024, **_GYM),
