@@ -204,3 +204,25 @@ def test_importing_the_cli_registers_nothing():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
+
+
+TINY = ["algo.trajectories=4", "algo.horizon=20", "algo.batch_size=2", "algo.max_off_iters=2",
+        "estimator.k=3", "policy.hidden=[8]", "eval.trajectories=2", "eval.horizon=10",
+        "progress=false"]  # fmt: skip
+
+
+def test_hydra_quoted_paths_with_spaces_work_for_resume_and_init(tmp_path, capsys):
+    """hydra.run.dir, resume= and init= quoted the way Hydra quotes, in a folder with spaces."""
+    import json
+
+    run = tmp_path / "dir with spaces" / "run 1"
+    main(["train", *TINY, "epochs=1", f"hydra.run.dir='{run}'"])
+    assert json.loads((run / "run.json").read_text())["epochs_done"] == 1
+    main(["train", f"resume='{run}'", "epochs=2"])
+    assert json.loads((run / "run.json").read_text())["epochs_done"] == 2
+    out = tmp_path / "fine tuned"
+    main(["finetune", f"init='{run}'", "epochs=1", "episodes=2", "horizon=10", "targets=1",
+          "config=0", "progress=false", f"hydra.run.dir='{out}'"])  # fmt: skip
+    assert (out / "finetune.csv").exists()
+    assert not list(tmp_path.glob("*'*"))  # no folder named with a quote
+    capsys.readouterr()
