@@ -44,7 +44,7 @@ from benchmarks.measure import (  # noqa: E402
 )
 from benchmarks.results import OFF_ITERS, Row, markdown, targets  # noqa: E402
 from hmepol_cli import blas, estimators, mepol  # noqa: E402
-from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
+from hmepol_cli.cli import setup  # noqa: E402
 from hmepol_cli.config import validate  # noqa: E402
 from hmepol_cli.envs import make_world  # noqa: E402
 from hmepol_cli.precision import bf16_runs_fast_here  # noqa: E402
@@ -52,6 +52,8 @@ from hmepol_cli.rollout import collect, draw_configurations  # noqa: E402
 from hmepol_cli.seeding import keep_freed_memory  # noqa: E402
 from hmepol_cli.surrogate import Surrogate  # noqa: E402
 from hmepol_cli.trainer import Trainer  # noqa: E402
+
+setup()  # the config schema and resolvers, for composing
 
 ENVS = ("slope", "corridor")
 ALGOS = ("mepol", "hmepol")

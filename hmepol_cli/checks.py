@@ -10,7 +10,6 @@ the names it is close to, the options of a group, what kind of value a key takes
 from __future__ import annotations
 
 import re
-import types
 from pathlib import Path
 
 from hydra.errors import HydraException
@@ -18,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from hmepol_cli import sweeps
-from hmepol_cli.config import validate
+from hmepol_cli.config import check_rules, validate
 from hmepol_cli.errors import ConfigError
 from hmepol_cli.resume import resumed_config
 from hmepol_cli.run import run_config
@@ -33,6 +32,7 @@ def compose(config_name: str, overrides: list[str]) -> DictConfig:
     from hydra.core.global_hydra import GlobalHydra
 
     task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    _check_flags(task, config_name)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
@@ -47,6 +47,25 @@ def compose(config_name: str, overrides: list[str]) -> DictConfig:
         ) from None
     finally:
         GlobalHydra.instance().clear()
+
+
+def _check_flags(overrides: list[str], config_name: str) -> None:
+    """A true-or-false setting takes true or false (OmegaConf would read 2 as true)."""
+    from hmepol_cli.config import rules_of
+
+    rules = rules_of(_schema(config_name))
+    for item in overrides:
+        key = item.lstrip("+~").partition("=")[0]
+        rule = rules.get(key)
+        if rule is None or rule.kind != "bool":
+            continue
+        try:
+            (override,) = sweeps.parse([item])
+        except (HydraException, ValueError):
+            continue  # Hydra's own message, below
+        if not override.is_sweep_override() and not isinstance(override.value(), bool):
+            value = item.partition("=")[2]
+            raise ConfigError(f"{key}={value!r} is not allowed: {key} takes {rule.describe()}")
 
 
 def _hydra_message(error: Exception, config_name: str = "config") -> str:
@@ -69,6 +88,14 @@ def _hydra_message(error: Exception, config_name: str = "config") -> str:
         kind = _schema_kind(name.lstrip("+~"), config_name)
         return f"{name}={value!r} is not allowed: {name} takes {kind}"
     lines = [line.strip() for line in text.splitlines() if line.strip()]
+    unread = re.search(r"LexerNoViableAltException: (\S+?)=(.*)", text)
+    if unread or "no viable alternative" in text or "mismatched input" in text:
+        name, value = unread.groups() if unread else (None, None)
+        quoting = "quote a value with spaces or other letters: key='value'"
+        if name is None:
+            return f"{lines[0] if lines else type(error).__name__}: cannot read it ({quoting})"
+        kind = _schema_kind(name.lstrip("+~"), config_name)
+        return f"{name}={value!r} cannot be read ({quoting}); {name} takes {kind}"
     return lines[0] if lines else type(error).__name__
 
 
@@ -118,29 +145,50 @@ def _group_options(group: str) -> list[str]:
 
 
 def _schema_kind(key: str, config_name: str) -> str:
-    """What a key of the schema takes, in words."""
-    import dataclasses
-    import typing
+    """What a key of the schema takes, in words: its rule's (hmepol_cli/config.py)."""
+    from hmepol_cli.config import rules_of
 
-    cls = _schema(config_name)
-    *parents, last = key.split(".")
+    rule = rules_of(_schema(config_name)).get(key)
+    return rule.describe() if rule is not None else "another kind of value"
+
+
+def override_value(item: str) -> str:
+    """The value of one ``key=value`` override as Hydra reads it: quotes taken off
+    (``resume='/runs/dir with spaces/run'``), escapes undone. Every path a user gives (resume=,
+    init=, report's folders, hydra.run.dir, hydra.sweep.dir, output_dir) goes through here."""
+    raw = item.partition("=")[2]
     try:
-        for part in parents:
-            hint = typing.get_type_hints(cls)[part]
-            cls = next(t for t in typing.get_args(hint) or [hint] if dataclasses.is_dataclass(t))
-        hint = typing.get_type_hints(cls)[last]
-    except (KeyError, StopIteration, TypeError):
-        return "another kind of value"
-    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
-    args = [a for a in typing.get_args(hint) if a is not type(None)] if union else [hint]
-    optional = " (or null)" if union and type(None) in typing.get_args(hint) else ""
-    base = args[0]
-    words = {int: "a whole number", float: "a number", bool: "true or false", str: "text"}
-    if typing.get_origin(base) is list:
-        (item,) = typing.get_args(base) or (typing.Any,)
-        kind = {int: "whole numbers", float: "numbers"}.get(item, "values")
-        return f"a list of {kind}, e.g. [300,300]{optional}"
-    return words.get(base, "another kind of value") + optional
+        (override,) = sweeps.parse([item])
+    except (HydraException, ValueError):
+        return unquote(raw)
+    if override.is_sweep_override():
+        return raw
+    value = override.value()
+    return value if isinstance(value, str) else raw
+
+
+def unquote(text: str) -> str:
+    """A path written the way Hydra quotes one, without its quotes ('a b' -> a b)."""
+    text = text.strip()
+    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
+        return text[1:-1]
+    return text
+
+
+def given_keys(overrides: list[str]) -> list[str]:
+    """The settings an override list sets (``+a.b=1`` -> ``a.b``), Hydra's own left out."""
+    keys = [o.lstrip("+~").partition("=")[0] for o in overrides]
+    return [k for k in keys if k and not k.startswith("hydra")]
+
+
+def check_applies(cfg: DictConfig, overrides: list[str], schema=None) -> None:
+    """Refuse a setting given on the command line that the chosen world or objective does not
+    use (wind on the slope, alpha on Mepol's mean objective): it would change nothing."""
+    from hmepol_cli.config import not_applicable
+
+    found = not_applicable(cfg, given_keys(overrides), schema)
+    if found:
+        raise ConfigError(f"{found[0]}; leave it out")
 
 
 def check_known_keys(cfg: DictConfig, schema: DictConfig, prefix: str = "") -> None:
@@ -165,7 +213,7 @@ def check_output_dirs(overrides: list[str]) -> None:
                 f"hydra/launcher={value!r} is not a launcher; choose one of: {options}"
             )
     for item in overrides:
-        key, _, value = item.partition("=")
+        key, value = item.partition("=")[0], override_value(item)
         if key in ("hydra.run.dir", "hydra.sweep.dir", "output_dir") and value:
             if Path(value).exists() and not Path(value).is_dir():
                 raise ConfigError(f"{key}={value!r} is a file, not a folder")
@@ -176,14 +224,14 @@ def check_train(overrides: list[str]) -> DictConfig:
     from hmepol_cli.config import Config
 
     check_output_dirs(overrides)
-    resume = next((o.partition("=")[2] for o in overrides if o.startswith("resume=")), None)
-    if resume not in (None, "", "null"):
-        run_config(Path(resume))  # a clear error for a folder that is not a run
-    cfg = compose("config", overrides)
+    cfg = compose("config", overrides)  # Hydra's reading of every value, quoted paths too
     check_known_keys(cfg, OmegaConf.structured(Config))
     if cfg.resume is not None:
+        run_config(Path(cfg.resume))  # a clear error for a folder that is not a run
         cfg = resumed_config(cfg, Path(cfg.resume), overrides)
     validate(cfg)
+    if cfg.resume is None:  # a continued run keeps what it started with
+        check_applies(cfg, overrides)
     return cfg
 
 
@@ -213,5 +261,6 @@ def check_finetune_overrides(overrides: list[str]) -> DictConfig:
     check_output_dirs(overrides)
     cfg = compose("finetune", overrides)
     check_known_keys(cfg, OmegaConf.structured(FinetuneConfig))
+    check_rules(cfg, FinetuneConfig)
     check_finetune(cfg)
     return cfg

@@ -38,6 +38,8 @@ from hmepol_cli.checks import (
     check_sweep,
     check_train,
     compose,
+    override_value,
+    unquote,
 )
 from hmepol_cli.config import register_configs, validate
 from hmepol_cli.errors import (
@@ -96,18 +98,58 @@ def _unique_resolver() -> str:
     return secrets.token_hex(3)
 
 
-OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
-OmegaConf.register_new_resolver("hmepol_job_dir", _job_dir_resolver, replace=True)
-OmegaConf.register_new_resolver("hmepol_unique", _unique_resolver, replace=True)
-register_configs()
-# Hydra scans the hydra_plugins namespace for launchers, which an editable install hides from
-# it: register ours by hand (its public API; a no-op when the scan found it).
-Plugins.instance().register(PopulationLauncher)
+def setup() -> None:
+    """What composing hmepol's configs needs: its resolvers, the schema in Hydra's config
+    store and the population launcher. ``main`` calls it; so does anything else that composes
+    (tests, benchmarks). Importing this module does none of it. Safe to call twice."""
+    OmegaConf.register_new_resolver("hmepol_run_dir", _run_dir_resolver, replace=True)
+    OmegaConf.register_new_resolver("hmepol_job_dir", _job_dir_resolver, replace=True)
+    OmegaConf.register_new_resolver("hmepol_unique", _unique_resolver, replace=True)
+    register_configs()
+    # Hydra scans the hydra_plugins namespace for launchers, which an editable install hides
+    # from it: register ours by hand (its public API; a no-op when the scan found it).
+    Plugins.instance().register(PopulationLauncher)
 
 
 def fail(message: str, code: int = 2) -> None:
     print(f"hmepol: error: {message}", file=sys.stderr)
     raise SystemExit(code)
+
+
+DEBUG_ENV = "HYDRA_FULL_ERROR"  # =1 (or --debug): an unexpected error keeps its traceback
+
+
+def debugging() -> bool:
+    return os.environ.get(DEBUG_ENV) == "1"
+
+
+def unexpected_line(error: BaseException) -> str:
+    """An exception no check foresaw, as one line; its traceback goes to a log file, whose
+    path the line gives (a temporary folder's, so nothing is left in the user's folders)."""
+    import tempfile
+    import traceback
+
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path = Path(tempfile.gettempdir()) / f"hmepol-error-{stamp}-{os.getpid()}.log"
+    text = "".join(traceback.format_exception(type(error), error, error.__traceback__))
+    try:
+        path.write_text(f"hmepol {' '.join(sys.argv[1:])}\n{text}")
+        where = f"the traceback is in {path}"
+    except OSError:
+        where = "the traceback could not be written"
+    first = (str(error).strip().splitlines() or [""])[0][:200]
+    return (
+        f"unexpected {type(error).__name__}{': ' + first if first else ''} (a bug in hmepol; "
+        f"{where}; {DEBUG_ENV}=1 or --debug prints it)"
+    )
+
+
+def guard_unexpected(error: Exception) -> None:
+    """The top-level guard of every command: an unexpected exception is one line and exit 1,
+    or, when debugging, its traceback."""
+    if debugging():
+        raise error
+    fail(unexpected_line(error), code=1)
 
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
@@ -292,6 +334,11 @@ def train_app(cfg: DictConfig) -> list[str] | None:
                 _report_job("failed", cfg, str(error))
                 return None
             fail(str(error), code=1 if isinstance(error, RunFailure | StorageError) else 2)
+        except Exception as error:  # a bug: one line and a log file, or the traceback
+            if multirun and not debugging():
+                _report_job("failed", cfg, unexpected_line(error))
+                return None
+            guard_unexpected(error)
         except Interrupted as error:
             _report_job("interrupted", cfg, str(error))
             print(f"hmepol: {interrupted_line(error)}", file=sys.stderr, flush=True)
@@ -307,7 +354,7 @@ def _sweep(args: list[str], n_jobs: int = 0) -> None:
         [] if any(a.startswith("hydra/launcher=") for a in args) else ["hydra/launcher=local"]
     )
     sweep_dir = next(
-        (a.partition("=")[2] for a in args if a.startswith("hydra.sweep.dir=")), "outputs/sweep"
+        (override_value(a) for a in args if a.startswith("hydra.sweep.dir=")), "outputs/sweep"
     )
     Path(sweep_dir).mkdir(parents=True, exist_ok=True)
     status = Path(sweep_dir) / f".hmepol-sweep-{secrets.token_hex(4)}.jsonl"
@@ -353,6 +400,8 @@ def finetune_app(cfg: DictConfig) -> str | None:
             return str(finetune(cfg))
         except UserError as error:
             fail(str(error))
+        except Exception as error:  # a bug: one line and a log file, or the traceback
+            guard_unexpected(error)
         except Interrupted as error:
             print(f"hmepol: {error}: the fine-tuning's rows so far are kept; running it again "
                   "starts it over", file=sys.stderr, flush=True)  # fmt: skip
@@ -382,11 +431,11 @@ def _report(args: list[str]) -> None:
         "--out", default=None, help="report folder (default: the first RUNS folder's report/)"
     )
     ns = parser.parse_args(args)
-    roots = [Path(r) for r in ns.runs]
+    roots = [Path(unquote(r)) for r in ns.runs]  # a path quoted as for Hydra reads the same
     for runs in roots:
         if not runs.is_dir():
             fail(f"{str(runs)!r} is not a directory of runs")
-    out = Path(ns.out) if ns.out else roots[0] / "report"
+    out = Path(unquote(ns.out)) if ns.out else roots[0] / "report"
     if out.exists() and not out.is_dir():
         fail(f"--out {str(out)!r} is a file; give a folder for the report")
     try:
@@ -459,6 +508,9 @@ def package_version() -> str:
 
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if "--debug" in argv:  # the traceback of an unexpected error, Hydra's included
+        argv = [a for a in argv if a != "--debug"]
+        os.environ[DEBUG_ENV] = "1"
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         return
@@ -467,6 +519,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     command, rest = argv[0], argv[1:]
     warnings.formatwarning = _one_line_warning
+    setup()
     try:
         if command == "train":
             if not _asks_for_help(rest):
@@ -500,6 +553,8 @@ def main(argv: list[str] | None = None) -> None:
             )
     except UserError as error:
         fail(str(error))
+    except Exception as error:  # a bug: one line and a log file, or the traceback
+        guard_unexpected(error)
 
 
 if __name__ == "__main__":

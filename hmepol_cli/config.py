@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from hmepol_cli.errors import ConfigError
 from hmepol_cli.precision import PRECISIONS, precision_of
@@ -231,6 +231,317 @@ class FinetuneConfig(TRPOConfig):
     output_dir: str | None = None  # null: Hydra's run directory
 
 
+# --------------------------------------------------------------------------- the rules
+INT_MAX = 2**31 - 1  # every whole number is below this: a seed, a count, an index
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What one setting accepts: its kind, a range or the choices, and the worlds or objectives
+    it applies to. Every field of the schema has one (tests/test_fuzz_config.py fails on a
+    field without), and :func:`check_rules` checks a composed config against them all.
+
+    kind: int | float | bool | text | ints | floats | choice | other (checked further on by
+    its own code, which ``bad`` examples exercise)."""
+
+    kind: str
+    at_least: float | None = None
+    above: float | None = None
+    below: float | None = None
+    at_most: float | None = None
+    choices: Any = None  # a tuple, or a function giving one (a registry)
+    null: bool = False  # null is allowed
+    nonempty: bool = False  # a list needs an item
+    example: str | None = None
+    worlds: tuple[str, ...] | None = None  # None: every world
+    objectives: tuple[str, ...] | None = None  # None: every objective
+    bad: tuple[str, ...] = ()  # kind other: overrides its own check refuses (the fuzz test)
+
+    def allowed(self) -> tuple[str, ...]:
+        return tuple(self.choices() if callable(self.choices) else self.choices or ())
+
+    def describe(self) -> str:
+        """What the setting takes, in words."""
+        if self.kind == "choice":
+            text = f"one of: {', '.join(map(str, self.allowed()))}"
+        elif self.kind == "other":
+            text = self.example or "a value its own check accepts"
+        else:
+            words = {"int": "a whole number", "float": "a finite number", "bool": "true or false",
+                     "text": "text", "ints": "a list of whole numbers",
+                     "floats": "a list of finite numbers"}  # fmt: skip
+            text = words[self.kind]
+            pairs = ((">=", self.at_least), (">", self.above), ("<", self.below),
+                     ("<=", self.at_most))  # fmt: skip
+            bounds = [f"{op} {_number_text(b)}" for op, b in pairs if b is not None]
+            if self.kind in ("int", "ints") and self.below is None and self.at_most is None:
+                bounds.append(f"<= {INT_MAX}")
+            if bounds:
+                text += (" each" if self.kind in ("ints", "floats") else "") + " " + " and ".join(
+                    bounds
+                )
+            if self.nonempty:
+                text += ", at least one"
+            if self.example:
+                text += f", e.g. {self.example}"
+        return text + (" (or null)" if self.null else "")
+
+
+def _number_text(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() else f"{value:g}"
+
+
+def _registry(module: str, name: str):
+    def names() -> tuple[str, ...]:
+        import importlib
+
+        return tuple(getattr(importlib.import_module(module), name))
+
+    return names
+
+
+def _choice(*values, null: bool = False, **where) -> Rule:
+    return Rule("choice", choices=values, null=null, **where)
+
+
+def _whole(at_least: int = 0, **more) -> Rule:
+    return Rule("int", at_least=at_least, **more)
+
+
+def _number(**more) -> Rule:
+    return Rule("float", **more)
+
+
+def _text(**more) -> Rule:
+    return Rule("text", **more)
+
+
+FLAG = Rule("bool")
+_GYM = {"worlds": ("gym",)}
+_BPTT = Rule("other", null=True, example="a whole number >= 1 or 'full'", bad=("zero", "0", "-2"))
+
+# One rule per leaf of the schema, by its dotted key. A new setting adds its line here.
+POLICY_RULES: dict[str, Rule] = {
+    "name": Rule("choice", choices=_registry("hmepol_cli.policies", "POLICIES")),
+    "hidden": Rule("ints", above=0, at_most=100_000, nonempty=True, example="[300,300]"),
+    "encoder_hidden": Rule("ints", above=0, at_most=100_000, example="[300,300]"),
+    "history_size": _whole(1, at_most=100_000),
+    "encoder_activation": _choice("relu", "tanh"),
+    "bptt": _BPTT,
+    "init_log_std": _number(),
+    "init_weights": _choice("xavier", "torch"),
+    "init_mean_scale": _number(at_least=0),
+}
+ENV_RULES: dict[str, Rule] = {
+    "name": Rule("choice", choices=_registry("hmepol_cli.envs", "ENVIRONMENTS")),
+    "wind": _number(at_least=0, below=12.0, null=True, worlds=("corridor",)),
+    "edge": Rule("choice", choices=_registry("hmepol_cli.envs.base", "EDGE_RULES")),
+    "id": _text(null=True, **_GYM),
+    "features": Rule("ints", at_least=0, null=True, nonempty=True, example="[0,1]", **_GYM),
+    "configs": Rule("other", null=True, example="a list of keyword sets, e.g. [{},{gravity:5}]",
+                    bad=("3",), **_GYM),  # fmt: skip
+    "probs": Rule("floats", at_least=0, null=True, nonempty=True, **_GYM),
+    "projection": Rule("ints", at_least=0, null=True, example="[0,1]", **_GYM),
+    "workers": _whole(0, at_most=1024, **_GYM),
+}
+RULES: dict[str, Rule] = {
+    **{f"env.{k}": r for k, r in ENV_RULES.items()},
+    "algo.name": Rule("choice", choices=_registry("hmepol_cli.algorithms", "ALGORITHMS")),
+    "algo.objective": Rule("choice", choices=_registry("hmepol_cli.objectives", "OBJECTIVES")),
+    "algo.alpha": _number(above=0, at_most=1, objectives=("cvar",)),
+    "algo.trajectories": _whole(1),
+    "algo.horizon": _whole(1),
+    "algo.batch_size": _whole(1),
+    "algo.kl_threshold": _number(above=0),
+    "algo.lr": _number(above=0),
+    "algo.max_off_iters": _whole(1),
+    "algo.backtracking": _choice("reference", "first_step"),
+    "algo.lr_backtrack_tries": _whole(0),
+    "algo.lr_backtrack_factor": _number(above=1),
+    "algo.backtrack_restore": _choice("parameters", "parameters_and_adam"),
+    "algo.trust_region": _choice("gradient", "exact"),
+    "algo.adam_reset": _choice("epoch", null=True),
+    **{f"policy.{k}": r for k, r in POLICY_RULES.items()},
+    "estimator.name": Rule("choice", choices=_registry("hmepol_cli.estimators", "ESTIMATORS")),
+    "estimator.k": _whole(1),
+    "estimator.neighbours": _choice("auto", "kdtree", "torch"),
+    "estimator.eps": _number(above=0),
+    "eval.every": _whole(0),
+    "eval.trajectories": _whole(1),
+    "eval.horizon": _whole(1),
+    "eval.plot_trajectories": _whole(0),
+    "alarms.history_bound": _number(above=0),
+    "alarms.action_bound": _number(above=0),
+    "alarms.stall_epochs": _whole(1),
+    "alarms.precision_drift": _number(above=0),
+    "checkpoint.keep_every": _whole(0),
+    "logger.csv": Rule("other", null=True, example="a group: logger=[csv,...]", bad=("3",)),
+    "logger.tensorboard": Rule("other", null=True, example="a group: logger=[csv,tensorboard]",
+                               bad=("3",)),  # fmt: skip
+    "logger.wandb.project": _text(),
+    "logger.wandb.entity": _text(null=True),
+    "logger.wandb.mode": _choice("auto", "online", "offline", "disabled"),
+    "logger.mlflow.tracking_uri": _text(null=True),
+    "logger.mlflow.experiment": _text(),
+    "diagnostics": FLAG,
+    "seed": _whole(0),
+    "seeds": Rule("ints", at_least=0, at_most=INT_MAX, null=True, nonempty=True,
+                  example="seeds=[0,1,2]"),  # fmt: skip
+    "members": Rule("other", null=True, example='override strings, e.g. ["seed=0 wind=0.1"]',
+                    bad=("3",)),  # fmt: skip
+    "chunk_members": _whole(0),
+    "device": _choice(*("cpu", "cuda", "auto")),
+    "precision": Rule("choice", choices=lambda: (*PRECISIONS, "auto")),
+    "blas": _choice("auto", "torch", "openblas"),
+    "vmap": _choice("auto", "on", "off"),
+    "cuda_graphs": FLAG,
+    "epochs": _whole(1),
+    "resume": _text(null=True),
+    "wind": _number(at_least=0, below=12.0, worlds=("corridor",)),
+    "progress": FLAG,
+    "threads": _whole(0, at_most=4096),
+    "skip_finished": FLAG,
+}
+FINETUNE_RULES: dict[str, Rule] = {
+    "gamma": _number(at_least=0, at_most=1),
+    "gae_lambda": _number(at_least=0, at_most=1),
+    "max_kl": _number(above=0),
+    "cg_iters": _whole(1),
+    "damping": _number(at_least=0),
+    "fisher_fraction": _number(above=0, at_most=1),
+    "line_search_steps": _whole(1),
+    "line_search_shrink": _number(above=0, below=1),
+    "normalize_advantage": FLAG,
+    "value_lr": _number(above=0),
+    "value_epochs": _whole(1),
+    "value_batch": _whole(1),
+    "value_hidden": Rule("ints", above=0, at_most=100_000, nonempty=True, example="[64,64]"),
+    "init": _text(example="none, a run directory, or <run dir>@<epochs>"),
+    "allow_running": FLAG,
+    **{f"env.{k}": r for k, r in ENV_RULES.items()},
+    "wind": _number(at_least=0, below=12.0, null=True, worlds=("corridor",)),
+    **{f"policy.{k}": r for k, r in POLICY_RULES.items()},
+    "goal": Rule("other", example="random or a list of [x, y] centres, e.g. [[-0.6,-0.2]]",
+                 bad=("somewhere", "[[5,5]]")),  # fmt: skip
+    "targets": _whole(1, at_most=10_000),
+    "goal_size": _number(above=0, null=True),
+    "goal_seed": _whole(0),
+    "config": Rule("other", null=True, example="an index of a configuration, a list, or null",
+                   bad=("7",)),  # fmt: skip
+    "epochs": _whole(1),
+    "episodes": _whole(1),
+    "horizon": _whole(1),
+    "seed": _whole(0),
+    "device": _choice("cpu", "cuda", "auto"),
+    "blas": _choice("auto", "torch", "openblas"),
+    "threads": _whole(0, at_most=4096),
+    "progress": FLAG,
+    "output_dir": _text(null=True),
+}
+
+
+def schema_fields(cls: type, prefix: str = "") -> list[str]:
+    """Every leaf setting of a schema dataclass, by its dotted key."""
+    import dataclasses
+    import typing
+
+    keys = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        inner = [t for t in typing.get_args(hints[f.name]) or [hints[f.name]]
+                 if dataclasses.is_dataclass(t)]  # fmt: skip
+        keys += schema_fields(inner[0], f"{prefix}{f.name}.") if inner else [f"{prefix}{f.name}"]
+    return keys
+
+
+def rules_of(cls: type) -> dict[str, Rule]:
+    return FINETUNE_RULES if cls is FinetuneConfig else RULES
+
+
+def _shown(value: object) -> str:
+    if OmegaConf.is_config(value):
+        value = OmegaConf.to_container(value)
+    return "null" if value is None else repr(value)
+
+
+def check_value(key: str, value: object, rule: Rule) -> None:
+    """One setting against its rule; ConfigError names the value and what is allowed."""
+
+    def refuse() -> None:
+        raise ConfigError(f"{key}={_shown(value)} is not allowed: {key} takes {rule.describe()}")
+
+    if value is None:
+        if not rule.null and rule.kind != "other":
+            refuse()
+        return
+    if rule.kind == "other":
+        return
+    if rule.kind == "choice":
+        if str(value) not in map(str, rule.allowed()) or isinstance(value, bool):
+            refuse()
+        return
+    if rule.kind == "bool":
+        if not isinstance(value, bool):
+            refuse()
+        return
+    if rule.kind == "text":
+        if not isinstance(value, str):
+            refuse()
+        return
+    items = list(value) if OmegaConf.is_list(value) or isinstance(value, list) else None
+    if rule.kind in ("ints", "floats"):
+        if items is None or (rule.nonempty and not items):
+            refuse()
+    else:
+        items = [value]
+    whole = rule.kind in ("int", "ints")
+    high = rule.at_most if rule.at_most is not None else (INT_MAX if whole else None)
+    for item in items:
+        if isinstance(item, bool) or not isinstance(item, int | float):
+            refuse()
+        if whole and not isinstance(item, int):
+            refuse()
+        if not math.isfinite(item):
+            refuse()
+        if (
+            (rule.at_least is not None and not item >= rule.at_least)
+            or (rule.above is not None and not item > rule.above)
+            or (rule.below is not None and not item < rule.below)
+            or (high is not None and not item <= high)
+        ):
+            refuse()
+
+
+def check_rules(cfg: DictConfig, cls: type) -> None:
+    """Every setting of a composed config against its rule, in the schema's order."""
+    for key in sorted(schema_fields(cls), key=lambda k: k.count(".")):  # wind before env.wind
+        rule = rules_of(cls)[key]
+        parent = OmegaConf.select(cfg, key.rpartition(".")[0]) if "." in key else cfg
+        if parent is None:  # a group left at null (finetune's env, an unused logger)
+            continue
+        check_value(key, OmegaConf.select(cfg, key, throw_on_missing=False), rule)
+
+
+def not_applicable(cfg: DictConfig, given: list[str], cls: type = None) -> list[str]:
+    """Settings given on the command line that the chosen world or objective does not use."""
+    rules = rules_of(cls or Config)
+    world = OmegaConf.select(cfg, "env.name")
+    objective = OmegaConf.select(cfg, "algo.objective")
+    found = []
+    for key in dict.fromkeys(given):
+        rule = rules.get(key)
+        if rule is None:
+            continue
+        if rule.worlds and world is not None and world not in rule.worlds:
+            found.append(f"{key}={_shown(OmegaConf.select(cfg, key))} does not apply to "
+                         f"env={world} (only to {', '.join(rule.worlds)})")  # fmt: skip
+        elif rule.objectives and objective is not None and objective not in rule.objectives:
+            found.append(f"{key}={_shown(OmegaConf.select(cfg, key))} does not apply to "
+                         f"algo={cfg.algo.name} (objective {objective}; only to the "
+                         f"{', '.join(rule.objectives)} objective)")  # fmt: skip
+    return found
+
+
 def register_configs() -> None:
     ConfigStore.instance().store(name="config_schema", node=Config)
     ConfigStore.instance().store(name="finetune_schema", node=FinetuneConfig)
@@ -361,48 +672,15 @@ def parse_bptt(value: str) -> int | None:
 
 
 def validate(cfg: DictConfig) -> None:
-    """Refuse values of the right type that mean nothing; one line names the value and the rule."""
-    from hmepol_cli.algorithms import ALGORITHMS
+    """Refuse values that mean nothing; one line names the value and the rule. Each setting
+    against its own rule (:data:`RULES`) first, then the rules that tie settings together."""
     from hmepol_cli.envs import ENVIRONMENTS
-    from hmepol_cli.envs.base import EDGE_RULES
-    from hmepol_cli.estimators import ESTIMATORS
-    from hmepol_cli.objectives import OBJECTIVES
 
-    _one_of("env", cfg.env.name, tuple(ENVIRONMENTS))
-    _one_of("env.edge", cfg.env.edge, EDGE_RULES)
-    _one_of("algo.name", cfg.algo.name, tuple(ALGORITHMS))
-    _one_of("algo.objective", cfg.algo.objective, tuple(OBJECTIVES))
+    check_rules(cfg, Config)
     check_device(cfg.device)
     check_precision(precision_of(cfg).name, cfg.device)
-    check_blas(cfg.get("blas", "auto"))
-    _one_of("vmap", cfg.vmap, ("auto", "on", "off"))
-    _one_of("algo.trust_region", cfg.algo.trust_region, ("gradient", "exact"))
-    _one_of("algo.backtracking", cfg.algo.backtracking, BACKTRACKING)
-    _one_of("algo.backtrack_restore", cfg.algo.backtrack_restore, RESTORE)
-    if cfg.algo.get("adam_reset") not in (None, "epoch"):
-        raise ConfigError(
-            f"algo.adam_reset={cfg.algo.adam_reset!r} is not allowed; choose null (one Adam "
-            "for the whole run, the thesis) or epoch (fresh moments every epoch)"
-        )
-    _one_of("estimator", cfg.estimator.name, tuple(ESTIMATORS))
-    _one_of("estimator.neighbours", cfg.estimator.neighbours, NEIGHBOURS)
-    if not 0 < cfg.algo.alpha <= 1:  # also refuses nan
-        raise ConfigError(f"algo.alpha={cfg.algo.alpha!r} must be in (0, 1]")
-    if cfg.estimator.k <= 0:
-        raise ConfigError(f"estimator.k={cfg.estimator.k!r} must be a whole number > 0")
-    check_wind("wind", cfg.wind)
     if cfg.resume is None:  # a run started before keeps the env.wind it recorded
         _check_env_wind(cfg)
-    for key in ("trajectories", "horizon", "batch_size", "max_off_iters"):
-        _positive(f"algo.{key}", cfg.algo[key])
-    for key in ("kl_threshold", "lr"):
-        _positive(f"algo.{key}", cfg.algo[key])
-    if not 1 < cfg.algo.lr_backtrack_factor < math.inf:
-        raise ConfigError(f"algo.lr_backtrack_factor={cfg.algo.lr_backtrack_factor!r} must be > 1")
-    if cfg.algo.lr_backtrack_tries < 0:
-        raise ConfigError(f"algo.lr_backtrack_tries={cfg.algo.lr_backtrack_tries!r} must be >= 0")
-    for key in ("history_bound", "action_bound", "stall_epochs", "precision_drift"):
-        _positive(f"alarms.{key}", cfg.alarms[key])
     if cfg.algo.trajectories % cfg.algo.batch_size:
         raise ConfigError(
             f"algo.trajectories={cfg.algo.trajectories} must be a multiple of "
@@ -413,21 +691,10 @@ def validate(cfg: DictConfig) -> None:
             f"estimator.k={cfg.estimator.k} must be smaller than the particles of a mini-batch "
             f"(batch_size * horizon = {cfg.algo.batch_size * cfg.algo.horizon})"
         )
-    if cfg.chunk_members < 0:
-        raise ConfigError(f"chunk_members={cfg.chunk_members!r} must be a whole number >= 0")
-    if cfg.checkpoint.keep_every < 0:
-        raise ConfigError(
-            f"checkpoint.keep_every={cfg.checkpoint.keep_every!r} must be a whole number >= 0"
-        )
-    if cfg.epochs < 1:
-        raise ConfigError(f"epochs={cfg.epochs!r} must be a whole number >= 1")
     _check_world_keys(cfg.env)
     from hmepol_cli.tracking import check_loggers
 
     check_loggers(cfg)
-    wandb = (cfg.get("logger") or {}).get("wandb")
-    if wandb is not None:
-        _one_of("logger.wandb.mode", wandb.mode, ("auto", "online", "offline", "disabled"))
     if cfg.seeds is not None and len(set(cfg.seeds)) != len(cfg.seeds):
         raise ConfigError(f"seeds={list(cfg.seeds)} holds a seed twice")
     validate_policy(cfg.policy)

@@ -42,11 +42,13 @@ from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
 from benchmarks.measure import cpu_name  # noqa: E402
 from hmepol_cli import estimators, mepol  # noqa: E402
-from hmepol_cli.cli import register_configs  # noqa: E402, F401  (registers the config schema)
+from hmepol_cli.cli import setup  # noqa: E402
 from hmepol_cli.config import validate  # noqa: E402
 from hmepol_cli.rollout import collect, draw_configurations  # noqa: E402
 from hmepol_cli.surrogate import Surrogate
 from hmepol_cli.trainer import Trainer  # noqa: E402
+
+setup()  # the config schema and resolvers, for composing
 
 
 # ------------------------------------------------------------------ the three KLs

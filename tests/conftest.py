@@ -9,12 +9,14 @@ import pytest
 import torch
 
 from hmepol_cli import blas
+from hmepol_cli.cli import setup
 from hmepol_cli.config import PolicyConfig
 from hmepol_cli.envs.slope import SlopeWorld
 from hmepol_cli.policies import make_policy
 
 # The tests use tiny tensors; extra threads only contend with the other processes on the box.
 torch.set_num_threads(1)
+setup()  # the config schema and resolvers: the tests compose configs as hmepol does
 
 # The library of the float32 layer products every test starts with: HMEPOL_BLAS=openblas
 # (or torch) runs the whole suite through that one (`make test` with each forced).

@@ -40,7 +40,7 @@ TRAIN = [
     (["policy.init_log_std=nan"], "policy.init_log_std=nan"),
     (["alarms.stall_epochs=0"], "alarms.stall_epochs=0"),
     (["algo.trust_region=loose"], "algo.trust_region='loose'"),
-    (["algo.adam_reset=never"], "algo.adam_reset='never' is not allowed; choose null"),
+    (["algo.adam_reset=never"], "algo.adam_reset takes one of: epoch (or null)"),
     # Gymnasium worlds: the id, the indices, the class of configurations
     (["env=gym"], "env.id"),
     (["env=gym", "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered"),
@@ -57,14 +57,14 @@ TRAIN = [
     (["algo.lrr=1e-3"], "did you mean algo.lr"),
     (["lrr=1e-3"], "did you mean algo.lr"),
     (["seed=abc"], "seed takes a whole number"),
-    (["algo.lr=fast"], "algo.lr takes a number"),
+    (["algo.lr=fast"], "algo.lr takes a finite number > 0"),
     (["policy.hidden=3"], "policy.hidden takes a list of whole numbers"),
     (["hydra/launcher=nosuch"], "choose one of: basic,"),
     # values that mean nothing
-    (["epochs=0"], "epochs=0 must be a whole number >= 1"),
+    (["epochs=0"], "epochs=0 is not allowed: epochs takes a whole number >= 1"),
     (["env.probs=[0.5,0.5]"], "slope takes no such key"),
     (["env=corridor", "env.workers=2"], "corridor takes no such key"),
-    (["wind=1e308"], "must be a number >= 0 and < 12"),
+    (["env=corridor", "wind=1e308"], "wind takes a finite number >= 0 and < 12"),
     (["env=corridor", "env.wind=0.1"], "set the corridor's wind with wind=0.1"),
     (
         ["env=gym", f"env.id={WALK_ID}", "env.configs=[{},{}]", "env.probs=[0.5,0.6]"],
@@ -101,7 +101,8 @@ def test_train_refuses_a_bad_value_in_one_line_and_writes_nothing(tmp_path, caps
 
 def test_a_sweep_refuses_a_bad_value_in_any_job(tmp_path, capsys):
     code, text = run(
-        capsys, "sweep", "algo.alpha=0.5,2", "seed=0,1", f"hydra.sweep.dir={tmp_path / 's'}"
+        capsys, "sweep", "algo=alphamepol", "algo.alpha=0.5,2", "seed=0,1",
+        f"hydra.sweep.dir={tmp_path / 's'}",
     )
     assert_one_line(code, text, "algo.alpha=2")
     assert not (tmp_path / "s").exists()
@@ -216,3 +217,39 @@ def test_a_report_into_a_file_is_refused(tmp_path, capsys):
     assert_one_line(
         *run(capsys, "report", str(tmp_path / "runs"), "--out", str(target)), "is a file"
     )
+
+
+def _broken(*args, **kwargs):
+    raise RuntimeError("a bug nobody foresaw")
+
+
+@pytest.mark.parametrize("command", ["show", "report", "train"])
+def test_an_unexpected_error_is_one_line_and_a_log_with_its_traceback(
+    tmp_path, capsys, monkeypatch, command
+):
+    import hmepol_cli.cli as cli
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    monkeypatch.setattr(cli, {"show": "_show", "report": "_report", "train": "_train"}[command],
+                        _broken)  # fmt: skip
+    args = [f"hydra.run.dir={tmp_path / 'run'}"] if command == "train" else []
+    code, text = run(capsys, command, *args)
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert code == 1, text
+    assert len(lines) == 1 and "unexpected RuntimeError: a bug nobody foresaw" in lines[0], text
+    assert "Traceback" not in text
+    log = lines[0].split("the traceback is in ")[1].split(";")[0]
+    logged = open(log).read()
+    assert "Traceback" in logged and "a bug nobody foresaw" in logged and "_broken" in logged
+
+
+def test_debug_keeps_the_traceback(monkeypatch):
+    import hmepol_cli.cli as cli
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    monkeypatch.setattr(cli, "_show", _broken)
+    with pytest.raises(RuntimeError, match="a bug nobody foresaw"):
+        main(["show", "--debug"])
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "1")
+    with pytest.raises(RuntimeError, match="a bug nobody foresaw"):
+        main(["show"])

@@ -16,7 +16,6 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from hmepol_cli.cli import register_configs  # noqa: F401  (registers the schema and resolver)
 from hmepol_cli.config import validate
 
 # A run small enough for seconds: same code path as the thesis scale.

@@ -15,7 +15,6 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 from scipy.special import digamma
 
-from hmepol_cli.cli import register_configs  # noqa: F401  (schema and resolvers)
 from hmepol_cli.envs import ENVIRONMENTS, GymWorld, make_world
 from hmepol_cli.errors import ConfigError
 from hmepol_cli.evaluation import rollout_positions

@@ -14,7 +14,6 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
 from hmepol_cli import estimators, mepol
-from hmepol_cli.cli import register_configs  # noqa: F401  (schema and resolvers)
 from hmepol_cli.rollout import collect, draw_configurations
 from hmepol_cli.surrogate import Surrogate
 from hmepol_cli.trainer import Trainer

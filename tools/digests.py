@@ -57,7 +57,9 @@ def _compose(overrides: list[str]):
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
-    import hmepol_cli.cli  # noqa: F401  (schema and resolvers)
+    from hmepol_cli.cli import setup
+
+    setup()  # schema and resolvers
 
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="hmepol_cli.conf", version_base="1.3"):
