@@ -211,6 +211,7 @@ TINY = ["algo.trajectories=4", "algo.horizon=20", "algo.batch_size=2", "algo.max
         "progress=false"]  # fmt: skip
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_hydra_quoted_paths_with_spaces_work_for_resume_and_init(tmp_path, capsys):
     """hydra.run.dir, resume= and init= quoted the way Hydra quotes, in a folder with spaces."""
     import json

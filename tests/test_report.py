@@ -989,6 +989,7 @@ def test_figure_names_of_long_labels_stay_short_and_distinct():
     assert slug("α-Mepol") == "alpha-mepol"
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_exported_runs_rebuild_the_same_summary(tmp_path):
     """docs/results keeps the small files of runs (positions in float16): the report made from
     them gives the summary of the report made from the runs themselves."""
@@ -1019,6 +1020,7 @@ def test_exported_runs_rebuild_the_same_summary(tmp_path):
     pd.testing.assert_frame_equal(a, b)
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_every_caption_states_its_scale_and_a_smoke_run_says_so(tmp_path):
     small, large = tmp_path / "small", tmp_path / "large"
     write_run(small, seed=0, epochs=15, n_traj=10, horizon=40)

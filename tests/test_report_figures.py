@@ -125,6 +125,7 @@ def _report_record(out: Path, name: str) -> str:
     return page[start : page.index("</figcaption>", start)]
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_the_diagnostics_figure_is_readable_and_says_what_it_lacks(
     tmp_path, drawn_figures, monkeypatch
 ):

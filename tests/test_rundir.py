@@ -319,6 +319,7 @@ def test_giving_a_run_the_value_it_already_has_is_no_change(tmp_path, capsys):
     assert other.value.code == 2 and "algo.lr=2e-3 cannot change" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_a_population_resumed_with_a_member_behind_equals_an_uninterrupted_one(tmp_path):
     """Member 1's checkpoint is one epoch older than member 0's (a kill between the two
     saves): resumed, the population ends with every member's files equal to an uninterrupted

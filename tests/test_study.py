@@ -123,6 +123,7 @@ def test_an_interrupted_stage_continues_with_its_unfinished_seeds(tmp_path):
     assert "seed=2,3" in command and f"hydra.sweep.dir={spec.arms['a'].folder}" in command
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_a_changed_spec_or_commit_is_refused(tmp_path):
     path = spec_file(tmp_path, n=2, stages=2)
     written = preregister(load_spec(path), "c0ffee")
@@ -139,6 +140,7 @@ def test_a_changed_spec_or_commit_is_refused(tmp_path):
     assert len(out.stderr.strip().splitlines()) == 1 and "changed since" in out.stderr
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 @pytest.mark.parametrize("bad, word", [
     ({"alpha": 2}, "alpha=2.0"), ({"seeds_per_stage": 1}, "seeds_per_stage=1"),
     ({"launcher": "cloud"}, "launcher='cloud'")])  # fmt: skip
@@ -150,6 +152,7 @@ def test_a_bad_spec_is_one_line(tmp_path, bad, word):
     assert out.returncode == 2 and word in out.stderr and "Traceback" not in out.stderr
 
 
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_the_decisive_experiment_reads_as_in_results():
     out = subprocess.run(
         [sys.executable, "-m", "hmepol_cli.cli", "study", "conf/study/decisive_corridor.yaml",
