@@ -1,4 +1,4 @@
-"""The worlds (SPEC 2): solid walls, reachable layouts, forces as specified, Gymnasium API."""
+"""The worlds: solid walls, reachable layouts, forces as specified, Gymnasium API."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The worlds through Gymnasium's API, for RL code outside hmepol (SPEC 2).
+"""The worlds through Gymnasium's API, for RL code outside hmepol.
 
 Registered on ``import hmepol_cli.envs`` (idempotent)::
 

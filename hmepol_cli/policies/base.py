@@ -2,7 +2,7 @@
 
 Every policy carries a recurrent *history* tensor ``(N, H)`` between steps (thesis 4.2.1:
 h'_0 = 0, h'_t = g(s_t, h'_{t-1})); a Markovian policy has H = 0 and ignores it. One step maps
-(s_t, h'_{t-1}) to (mean of a_t, h'_t). The log-std is a state-independent parameter (SPEC 4).
+(s_t, h'_{t-1}) to (mean of a_t, h'_t). The log-std is a state-independent parameter.
 """
 
 from __future__ import annotations
