@@ -595,16 +595,6 @@ def check_precision(value: str, device: str) -> None:
         )
 
 
-def check_blas(value: str) -> None:
-    from hmepol_cli.blas import CHOICES, ENV
-
-    if value not in CHOICES:
-        raise ConfigError(
-            f"blas={value!r} is not allowed; choose one of: {', '.join(CHOICES)} (the default "
-            f"comes from ${ENV}, else auto)"
-        )
-
-
 def _one_of(key: str, value: object, allowed: tuple[str, ...]) -> None:
     if value not in allowed:
         raise ConfigError(f"{key}={value!r} is not allowed; choose one of: {', '.join(allowed)}")

@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 
 from hmepol_cli import blas
 from hmepol_cli.algorithms import SCRATCH
-from hmepol_cli.config import check_blas, check_device, check_wind, parse_bptt, validate_policy
+from hmepol_cli.config import check_device, check_wind, parse_bptt, validate_policy
 from hmepol_cli.envs import ENVIRONMENTS, World, make_world
 from hmepol_cli.envs.base import edge_rule
 from hmepol_cli.errors import ConfigError
@@ -212,7 +212,6 @@ def check_finetune(cfg: DictConfig) -> Plan:
     """Every value of a fine-tuning config checked, the world built and the targets drawn (a
     target outside the free space refused), before anything is written."""
     check_device(cfg.device)
-    check_blas(str(cfg.get("blas", "auto")))
     device = get_device(cfg.device)
     if _is_scratch(cfg.init):
         fresh = cfg.policy.copy()
