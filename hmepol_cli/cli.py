@@ -430,6 +430,12 @@ def _report(args: list[str]) -> None:
     parser.add_argument(
         "--out", default=None, help="report folder (default: the first RUNS folder's report/)"
     )
+    parser.add_argument(
+        "--unfinished",
+        action="store_true",
+        help="use runs that stopped before their last epoch too (runs still going, a replicate "
+        "cut short); every run is then cut at the last epoch all of them wrote",
+    )
     ns = parser.parse_args(args)
     roots = [Path(unquote(r)) for r in ns.runs]  # a path quoted as for Hydra reads the same
     for runs in roots:
@@ -439,7 +445,7 @@ def _report(args: list[str]) -> None:
     if out.exists() and not out.is_dir():
         fail(f"--out {str(out)!r} is a file; give a folder for the report")
     try:
-        index = run_report(roots, out)
+        index = run_report(roots, out, unfinished=ns.unfinished)
     except UserError as error:
         fail(str(error))
     print(f"hmepol: report written to {index}")

@@ -1174,3 +1174,37 @@ def test_an_export_that_fails_midway_leaves_the_kept_files_whole(tmp_path, monke
         export.export_runs(tmp_path / "runs", tmp_path / "kept")
     assert kept.read_bytes() == before
     assert not [p for p in kept.parent.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
+def test_report_of_unfinished_runs_cuts_every_run_at_their_common_last_epoch(tmp_path, capsys):
+    """`--unfinished` uses a run that stopped early, and compares every run over the epochs all
+    of them wrote: the final value is the last 10% of those, computed here by hand."""
+    root = tmp_path / "runs"
+    for seed in (0, 1):
+        write_run(root, algo="mepol", seed=seed, epochs=20, final=1.0 + 0.1 * seed)
+    stopped = write_run(root, algo="mepol", seed=2, epochs=20, epochs_done=12, status="interrupted")
+    (stopped / "eval" / "final.npz").unlink()  # an interrupted run has no final evaluation
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkippedRunWarning)
+        run_report(root, tmp_path / "finished-only")
+    assert pd.read_csv(tmp_path / "finished-only" / "summary.csv").n_seeds.unique().tolist() == [2]
+
+    main(["report", str(root), "--out", str(tmp_path / "report"), "--unfinished"])
+    assert "unfinished runs included: every run cut at epoch 11" in capsys.readouterr().out
+    rows = pd.read_csv(tmp_path / "report" / "summary.csv")
+    south = rows[rows.config == "0: south"].iloc[0]
+    assert south.n_seeds == 3 and south.final_epochs == "10-11"
+    # seed s's configuration 0 ramps linearly to final_s over its epochs; keep epochs 10 and 11
+    expected = np.mean(
+        [
+            (1.0 + 0.1 * s) * np.linspace(0.0, 1.0, 20)[10:12].mean()
+            if s < 2
+            else 1.0 * np.linspace(0.0, 1.0, 12)[10:12].mean()
+            for s in range(3)
+        ]
+    )
+    assert south.mean_nats == pytest.approx(expected, rel=1e-9)
+    page = html.unescape((tmp_path / "report" / "index.html").read_text())
+    assert "cut at epoch 11" in page

@@ -19,6 +19,7 @@ from hmepol_cli.report.html import write_index
 from hmepol_cli.report.loading import discover_runs
 from hmepol_cli.report.manifest import previous_report_files, write_manifest
 from hmepol_cli.report.runs import (
+    Run,
     SkippedRunWarning,
     drop_duplicate_seeds,
     group_runs,
@@ -27,7 +28,22 @@ from hmepol_cli.report.runs import (
 from hmepol_cli.report.summary import ReportCounts, write_summary
 
 
-def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
+def cut_at_common_epoch(runs: list[Run]) -> int | None:
+    """Cut every pre-training run's epochs at the last epoch all of them wrote, so that curves
+    and final values compare the same epochs; that epoch (None when no run has epochs)."""
+    ends = [
+        int(run.epochs.epoch.max()) for run in runs if run.epochs is not None and len(run.epochs)
+    ]
+    if not ends:
+        return None
+    end = min(ends)
+    for run in runs:
+        if run.epochs is not None:
+            run.epochs = run.epochs[run.epochs.epoch <= end]
+    return end
+
+
+def run_report(runs_roots: Path | Sequence[Path], out_dir: Path, unfinished: bool = False) -> Path:
     """Build the report of every finished run under ``runs_roots`` (one folder or several)
     into ``out_dir``.
 
@@ -39,6 +55,10 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     non-empty ``out_dir`` without ``report.json`` is refused. Unusable runs are skipped with a
     warning and listed; a run found twice (same config, seed and rows) is counted once, and the
     page says which directories were merged.
+
+    ``unfinished``: runs that stopped before their last epoch are used too (an interim report of
+    runs still going, a replicate cut short by its time), and every pre-training run is cut at
+    the last epoch all of them wrote, which the page and the command's last line state.
     """
     roots = [runs_roots] if isinstance(runs_roots, str | Path) else list(runs_roots)
     roots = [Path(r) for r in roots]
@@ -49,7 +69,7 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     previous = previous_report_files(out_dir)
     runs, skipped = [], []
     for root in roots:
-        found, unusable = discover_runs(root)
+        found, unusable = discover_runs(root, unfinished)
         runs, skipped = runs + found, skipped + unusable
     if not runs and not skipped:
         where = ", ".join(repr(str(r)) for r in roots)
@@ -57,6 +77,9 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
     runs, merged = merge_identical_runs(runs)
     runs, duplicates = drop_duplicate_seeds(runs)
     skipped = sorted(skipped + duplicates, key=lambda s: str(s.path))
+    cut_at = None
+    if unfinished and any(r.meta.get("status") != "finished" for r in runs):
+        cut_at = cut_at_common_epoch(runs)
     groups = group_runs(runs)
     finetune_runs = [r for r in runs if r.finetune is not None]
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -69,6 +92,7 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path) -> Path:
         skipped=len(skipped),
         figures=len(figures),
         merged=len(merged),
+        cut_at=cut_at,
     )
     from hmepol_cli.study import study_report  # a study's folder: its decisions too
 

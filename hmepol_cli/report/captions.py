@@ -209,7 +209,7 @@ def final_bars_caption(groups: list[Group], labels: Iterable[str], every_config:
 
 def entropy_against_wind_caption(groups: list[Group], labels: Iterable[str]) -> str:
     return (
-        f"Average entropy at convergence (nats; per seed the mean over the last 10% of epochs) "
+        f"Final average entropy (nats; per seed the mean over the last 10% of its epochs) "
         f"against the wind force, {' vs '.join(labels)}. Markers: mean over seeds; "
         f"{spread_text(groups, 'error bars', 'small dots: each seed')}. Dashed: log(free area) "
         "weighted by p_M."

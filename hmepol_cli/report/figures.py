@@ -351,7 +351,7 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
     ax.set_xlabel("wind force")
     ax.set_ylabel("final average entropy (nats)")
     ax.grid(alpha=0.3)
-    ax.set_title(f"{env}: entropy at convergence vs wind force", fontsize=11)
+    ax.set_title(f"{env}: final entropy (last 10% of epochs) vs wind force", fontsize=11)
     ax.legend(fontsize=8)
     path = save(fig, out_dir / f"{env}_entropy_vs_wind.png")
     caption = captions.entropy_against_wind_caption(groups, shown_labels(styles))

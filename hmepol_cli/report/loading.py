@@ -152,8 +152,11 @@ def _read_positions(path: Path, n_configurations: int) -> dict[int, np.ndarray]:
     return positions
 
 
-def load_run(path: Path) -> Run:
-    """Load one run directory; raise :class:`RunError` saying why it cannot be used."""
+def load_run(path: Path, unfinished: bool = False) -> Run:
+    """Load one run directory; raise :class:`RunError` saying why it cannot be used.
+
+    ``unfinished``: a pre-training run that stopped before its last epoch (interrupted, still
+    running) is used with the epochs it wrote; otherwise it is refused."""
     path = Path(path)
     try:
         meta = json.loads((path / RUN_INFO).read_text())
@@ -162,7 +165,7 @@ def load_run(path: Path) -> Run:
     if not isinstance(meta, dict):
         raise RunError("run.json is not a JSON object")
     status = meta.get("status")
-    if status != "finished":
+    if status != "finished" and not (unfinished and (path / EPOCHS_CSV).is_file()):
         raise RunError(
             f"unfinished (status {status!r}, {meta.get('epochs_done', '?')} epochs done)"
         )
@@ -204,18 +207,21 @@ def load_run(path: Path) -> Run:
     epochs = read_table(path / EPOCHS_CSV, REQUIRED_EPOCH_COLUMNS, NUMERIC_EPOCH_COLUMNS)
     check_entropies(epochs, _drawn_configurations(path / BATCHES_CSV))
     run.epochs = epochs.sort_values("epoch")
-    run.positions = _read_positions(path / EVAL_DIR / f"{FINAL_EVAL}.npz", run.n_configurations)
+    final_eval = path / EVAL_DIR / f"{FINAL_EVAL}.npz"
+    if status == "finished" or final_eval.exists():  # an unfinished run has no final evaluation
+        run.positions = _read_positions(final_eval, run.n_configurations)
     return run
 
 
-def discover_runs(root: Path) -> tuple[list[Run], list[SkippedRun]]:
-    """Every run directory under ``root`` (any depth), loaded; the unusable ones with a reason."""
+def discover_runs(root: Path, unfinished: bool = False) -> tuple[list[Run], list[SkippedRun]]:
+    """Every run directory under ``root`` (any depth), loaded; the unusable ones with a reason.
+    ``unfinished``: as in :func:`load_run`."""
     root = Path(root)
     runs: list[Run] = []
     skipped: list[SkippedRun] = []
     for marker in sorted(root.rglob(RUN_INFO)):
         try:
-            runs.append(load_run(marker.parent))
+            runs.append(load_run(marker.parent, unfinished))
         except RunError as err:
             skipped.append(SkippedRun(marker.parent, str(err)))
             warnings.warn(f"skipping run {marker.parent}: {err}", SkippedRunWarning, stacklevel=2)

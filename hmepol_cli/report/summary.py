@@ -48,6 +48,7 @@ class ReportCounts:
     skipped: int
     figures: int
     merged: int = 0  # directories holding a run found elsewhere too, counted once
+    cut_at: int | None = None  # unfinished runs included: every pre-training run cut here
 
     @property
     def runs_used(self) -> int:
@@ -59,9 +60,14 @@ class ReportCounts:
             if self.merged
             else ""
         )
+        cut = (
+            f", unfinished runs included: every run cut at epoch {self.cut_at}"
+            if self.cut_at is not None
+            else ""
+        )
         return (
             f"{self.runs_used} runs used ({self.groups} groups), {self.skipped} skipped{merged}, "
-            f"{self.figures} figures"
+            f"{self.figures} figures{cut}"
         )
 
 
