@@ -29,8 +29,8 @@ def load(folder: Path) -> dict[tuple[str, float, int], pd.DataFrame]:
     for arm, preset in ARMS.items():
         for wind in WINDS:
             for seed in range(8):
-                run = folder / arm / f"experiment-{preset}_precision-float32_seed-{seed}_wind-{wind}"
-                runs[arm, wind, seed] = pd.read_csv(run / "epochs.csv")
+                name = f"experiment-{preset}_precision-float32_seed-{seed}_wind-{wind}"
+                runs[arm, wind, seed] = pd.read_csv(folder / arm / name / "epochs.csv")
     return runs
 
 
@@ -57,7 +57,10 @@ def main(folder: Path = FOLDER) -> None:
         )
         for w in WINDS
     ]
-    print("| wind | Mepol | HMepol exact | exact - Mepol [95% t] | sign-flip p | Holm p | seeds for +-0.3 |")
+    print(
+        "| wind | Mepol | HMepol exact | exact - Mepol [95% t] | sign-flip p | Holm p "
+        "| seeds for +-0.3 |"
+    )
     print("|---|---|---|---|---|---|---|")
     for wind, result, p_holm in zip(WINDS, results, holm([r.p for r in results]), strict=True):
         means = [sum(metric[a, wind, s] for s in range(8)) / 8 for a in ("mepol", "exact")]
