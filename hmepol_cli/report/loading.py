@@ -2,7 +2,8 @@
 
 A run directory is any directory holding ``run.json`` (:mod:`hmepol_cli.run` is the
 contract): config.yaml, run.json (status, epochs_done, env, algo, policy, seed, wind, config
-names/probs, free areas), epochs.csv, batches.csv (which configurations an epoch drew, where its
+names/probs, free areas, the edge and backtracking rules, the world's map, a fine-tuning's return
+bounds), epochs.csv, batches.csv (which configurations an epoch drew, where its
 entropy_c<c> must be a number), eval/final.npz and, for fine-tuning runs, finetune.csv.
 
 Runs that cannot be used (unfinished, missing or corrupt files, a row cut short or not a number)
