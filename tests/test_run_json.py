@@ -138,3 +138,46 @@ def test_the_backfill_changes_nothing_but_the_keys_it_adds_and_is_idempotent(tmp
     assert backfill_main([str(tmp_path)]) == 0
     assert "backfill: 0 run.json files brought up to date" in capsys.readouterr().out
     assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in after} == stamps
+
+
+@pytest.mark.parametrize(
+    ("config", "meta", "rules"),
+    [
+        ({"env.name": "slope"}, {}, {"env.edge": "mirror", "algo.backtracking": "first_step"}),
+        (
+            {"env.name": "slope", "env.edge": "slide", "algo.backtracking": "reference"},
+            {},
+            {"env.edge": "slide", "algo.backtracking": "reference"},
+        ),
+        (
+            {"env.name": "corridor", "env.edge": "slide"},
+            {"edge": "mirror", "backtracking": "reference"},
+            {"env.edge": "mirror", "algo.backtracking": "reference"},
+        ),
+        ({"env.name": "gym"}, {"env_id": "x"}, {"algo.backtracking": "first_step"}),
+        ({"env.name": "slope"}, {"world_map": None}, {"algo.backtracking": "first_step"}),
+    ],
+)
+def test_the_report_reads_the_rules_run_json_records_or_their_absence_meant(config, meta, rules):
+    from hmepol_cli.report.rules import saved_rules
+
+    assert saved_rules(config, meta) == rules
+
+
+def test_the_reports_tables_for_an_older_run_json_are_the_training_codes():
+    """What the report assumes of a run.json older than a key is what the training code does."""
+    from hmepol_cli.config import AlgoConfig, EnvConfig, backtracking_rule
+    from hmepol_cli.envs import ENVIRONMENTS, NavigationWorld
+    from hmepol_cli.envs.base import edge_rule
+    from hmepol_cli.finetune.task import GoalTask
+    from hmepol_cli.report.rules import EDGED_WORLDS, RULE_WITHOUT_SETTING, TODAY
+    from hmepol_cli.report.runs import GOAL_TASK_BOUNDS
+
+    assert RULE_WITHOUT_SETTING == {
+        "env.edge": edge_rule({}),
+        "algo.backtracking": backtracking_rule({}),
+    }
+    assert TODAY == {"env.edge": EnvConfig.edge, "algo.backtracking": AlgoConfig.backtracking}
+    edged = {name for name, world in ENVIRONMENTS.items() if issubclass(world, NavigationWorld)}
+    assert set(EDGED_WORLDS) == edged
+    assert GOAL_TASK_BOUNDS == GoalTask.return_bounds

@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.errors import TableError
+from hmepol_cli.plots import WorldMap
 from hmepol_cli.report.defaults import schema_defaults
 from hmepol_cli.report.rules import saved_rules
 from hmepol_cli.report.runs import MapUnknownWarning, Run, SkippedRun, SkippedRunWarning
@@ -192,7 +193,7 @@ def load_run(path: Path, unfinished: bool = False) -> Run:
         config = {**schema_defaults(), **config, **saved_rules(config, meta)}
     run = Run(path=path, config=config, meta=meta)
     try:
-        run.world_map  # noqa: B018 (read once here: a damaged map makes the run unusable)
+        WorldMap.from_json(meta.get("world_map"))  # a map that cannot be drawn: not usable
     except (KeyError, TypeError, ValueError) as err:
         raise RunError(f"run.json's world_map is not a map ({type(err).__name__})") from None
     if (path / FINETUNE_CSV).exists():

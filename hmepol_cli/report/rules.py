@@ -20,7 +20,7 @@ RULE_KEYS = {"env.edge": "edge", "algo.backtracking": "backtracking"}
 # and continues, with the rules of before.
 RULE_WITHOUT_SETTING = {"env.edge": "mirror", "algo.backtracking": "first_step"}
 # The worlds with an arena edge (hmepol_cli.envs' 2-D navigation worlds), for a run.json that
-# records neither its edge rule nor its map: the only worlds a run could be made in before then.
+# records neither its edge rule nor its map; the others (a Gymnasium world) have no edge.
 EDGED_WORLDS = ("slope", "corridor", "multigrid")
 # Today's defaults of the rules (the schema's); a run made with another is said to be.
 TODAY = {key: schema_defaults()[key] for key in RULE_KEYS}
