@@ -21,10 +21,6 @@ import time
 import warnings
 from pathlib import Path
 
-# OpenMP threads that spin while waiting slow torch down many-fold on a shared or oversubscribed
-# machine (a sweep, a laptop); a user who wants spinning sets the variable themselves.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -563,5 +559,5 @@ def main(argv: list[str] | None = None) -> None:
         guard_unexpected(error)
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # `python -m hmepol_cli` also sets the OpenMP wait policy first
     main()
