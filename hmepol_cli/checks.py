@@ -232,7 +232,27 @@ def check_train(overrides: list[str]) -> DictConfig:
     validate(cfg)
     if cfg.resume is None:  # a continued run keeps what it started with
         check_applies(cfg, overrides)
+    if cfg.seeds or cfg.members:
+        check_members_of(cfg, overrides)
     return cfg
+
+
+def check_members_of(cfg: DictConfig, overrides: list[str]) -> None:
+    """Each member of a population (``seeds=[...]``, ``members=[...]``) composed as the run will
+    compose it, and validated, before anything is written; a refusal names the member."""
+    from hmepol_cli.members import check_members, common_overrides, member_config, member_overrides
+
+    common = common_overrides(overrides)
+    members = []
+    for own in member_overrides(cfg):
+        try:
+            member = member_config(cfg, common, own, compose)
+            validate(member)
+            check_applies(member, [*common, *own])
+        except ConfigError as error:
+            raise ConfigError(f"member {' '.join(own)!r}: {error}") from None
+        members.append(member)
+    check_members(members)
 
 
 def check_sweep(overrides: list[str]) -> int:

@@ -21,10 +21,6 @@ import time
 import warnings
 from pathlib import Path
 
-# OpenMP threads that spin while waiting slow torch down many-fold on a shared or oversubscribed
-# machine (a sweep, a laptop); a user who wants spinning sets the variable themselves.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -243,13 +239,14 @@ def _remove_if_empty(folder: Path) -> None:
 
 
 def train_runs(members: list[tuple[DictConfig, Path]], resume: bool = False) -> list[str]:
-    """Train runs that differ only in their seed as one population (skipping finished ones,
-    continuing interrupted ones). -> their run directories; RunFailure if any failed."""
+    """Train runs that differ only in member-scalar keys as one population (skipping finished
+    ones, continuing interrupted ones). The configs are valid ones: the command checked them
+    (:func:`hmepol_cli.checks.check_train`) before anything was written. -> their run
+    directories; RunFailure if any failed."""
     from hmepol_cli.trainer import Trainer
 
     todo, resuming = [], resume
-    for cfg, run_dir in members:
-        validate(cfg)
+    for cfg, run_dir in members:  # validated by the command's check, before anything was written
         info_file = run_dir / RUN_INFO
         if not resume and info_file.exists():
             try:
@@ -563,5 +560,5 @@ def main(argv: list[str] | None = None) -> None:
         guard_unexpected(error)
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # `python -m hmepol_cli` also sets the OpenMP wait policy first
     main()

@@ -11,7 +11,7 @@ the program, and runs that differ in it cannot be one population.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -74,22 +74,10 @@ def population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
     from hydra import compose as hydra_compose
 
     hc = HydraConfig.get()
-    common = [o for o in hc.overrides.task if _key(o) not in ("seeds", "members")]
-    if cfg.seeds:
-        seeds = [int(s) for s in cfg.seeds]
-        if len(set(seeds)) != len(seeds):
-            raise ConfigError(f"seeds={seeds} holds a seed twice")
-        own = [[f"seed={s}"] for s in seeds]
-    else:
-        own = [str(m).split() for m in cfg.members]
+    common = common_overrides(list(hc.overrides.task))
     members = []
-    for i, overrides in enumerate(own):
-        if cfg.seeds:
-            member = cfg.copy()
-            with open_dict(member):
-                member.seed, member.seeds = int(overrides[0].partition("=")[2]), None
-        else:
-            member = hydra_compose(config_name="config", overrides=[*common, *overrides])
+    for i, overrides in enumerate(member_overrides(cfg)):
+        member = member_config(cfg, common, overrides, hydra_compose)
         if hc.mode == RunMode.MULTIRUN:
             run_dir = Path(str(hc.sweep.dir)) / _member_subdir(hc, [*common, *overrides])
         elif cfg.seeds:
@@ -98,6 +86,35 @@ def population_members(cfg: DictConfig) -> list[tuple[DictConfig, Path]]:
             run_dir = Path(hc.runtime.output_dir) / f"member{i}"
         members.append((member, run_dir))
     return members
+
+
+def common_overrides(overrides: list[str]) -> list[str]:
+    """A population job's overrides that every member shares (all but seeds= and members=)."""
+    return [o for o in overrides if _key(o) not in ("seeds", "members")]
+
+
+def member_overrides(cfg: DictConfig) -> list[list[str]]:
+    """Each member's own overrides: ``seed=<s>`` for each of ``seeds=[...]``, or one entry of
+    ``members=[...]`` split at its spaces."""
+    if cfg.seeds:
+        seeds = [int(s) for s in cfg.seeds]
+        if len(set(seeds)) != len(seeds):
+            raise ConfigError(f"seeds={seeds} holds a seed twice")
+        return [[f"seed={s}"] for s in seeds]
+    return [str(m).split() for m in cfg.members]
+
+
+def member_config(
+    cfg: DictConfig, common: list[str], own: list[str], compose: Callable[..., DictConfig]
+) -> DictConfig:
+    """A member's config: the job's with another seed (``seeds=[...]``), or the config
+    ``compose`` (Hydra's compose API) makes of the job's common overrides and the member's."""
+    if cfg.seeds:
+        member = cfg.copy()
+        with open_dict(member):
+            member.seed, member.seeds = int(own[0].partition("=")[2]), None
+        return member
+    return compose(config_name="config", overrides=[*common, *own])
 
 
 def _key(override: str) -> str:

@@ -39,10 +39,15 @@ class OffPolicySettings:
 
     @classmethod
     def from_config(
-        cls, cfg: DictConfig, history_size: int, member_cfgs: Sequence[DictConfig] = ()
+        cls,
+        cfg: DictConfig,
+        history_size: int,
+        member_cfgs: Sequence[DictConfig] = (),
+        precision: Precision | None = None,
     ) -> OffPolicySettings:
         """The settings of ``cfg``; ``member_cfgs`` (default: [cfg]) the population's members,
-        which differ only in member-scalar keys."""
+        which differ only in member-scalar keys; ``precision``: the one the run resolved
+        (``precision=auto`` is resolved once, by whoever builds the run; None: resolve it)."""
         a = cfg.algo
         return cls(
             trajectories=int(a.trajectories),
@@ -58,7 +63,7 @@ class OffPolicySettings:
             exact_kl=a.trust_region == "exact" and history_size > 0,
             bptt=parse_bptt(cfg.policy.bptt),
             diagnostics=bool(cfg.get("diagnostics", False)),
-            precision=precision_of(cfg),
+            precision=precision_of(cfg) if precision is None else precision,
         )
 
 

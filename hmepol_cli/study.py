@@ -367,7 +367,7 @@ def preregister(spec: Spec, commit: str) -> Path:
 def sweep_command(spec: Spec, arm: Arm, seeds: list[int]) -> list[str]:
     """The ``hmepol sweep`` that runs (or resumes, or skips) these seeds of one arm."""
     return [
-        sys.executable, "-m", "hmepol_cli.cli", "sweep", f"experiment={arm.preset}",
+        sys.executable, "-m", "hmepol_cli", "sweep", f"experiment={arm.preset}",
         *spec.overrides, *arm.overrides, f"epochs={spec.epochs}",
         f"seed={','.join(map(str, seeds))}", f"hydra.sweep.dir={arm.folder}",
         f"hydra/launcher={spec.launcher}",

@@ -120,7 +120,9 @@ class Trainer:
                    tracking=MemberTracking(c, Path(d)))
             for c, d in zip(cfgs, run_dirs, strict=True)
         ]  # fmt: skip
-        self.settings = OffPolicySettings.from_config(cfg, self.population.history_size, cfgs)
+        self.settings = OffPolicySettings.from_config(
+            cfg, self.population.history_size, cfgs, precision
+        )
         # Captured rollouts (CUDA graphs), one per shape: on a GPU the step loop's ~100 small
         # kernels a step cost more in launches than in work.
         self.graphs: dict | None = {} if cfg.cuda_graphs and self.device.type == "cuda" else None

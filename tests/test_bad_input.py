@@ -72,6 +72,10 @@ TRAIN = [
     ),
     (["precision=tf32"], "precision='tf32' is a GPU precision"),
     (["chunk_members=-1"], "chunk_members=-1"),
+    # a population's members, each checked as the run composes it, before anything is written
+    (["env=corridor", 'members=["seed=0 wind=-1","seed=1"]'], "member 'seed=0 wind=-1': wind=-1"),
+    (['members=["seed=0","seed=1 algo.alpha=0.3"]'], "member 'seed=1 algo.alpha=0.3'"),
+    (['members=["seed=0 policy=recursive","seed=1"]'], "these differ in policy.name"),
 ]
 
 

@@ -322,7 +322,7 @@ def test_auto_chooses_openblas_only_with_a_margin_and_measures_once(tmp_path, mo
 @pytest.mark.parametrize("command", ["train", "finetune"])
 def test_an_unknown_library_is_refused_naming_the_choices(tmp_path, command):
     out = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", command, "blas=mkl"],
+        [sys.executable, "-m", "hmepol_cli", command, "blas=mkl"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert out.returncode == 2 and "Traceback" not in out.stderr

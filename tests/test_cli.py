@@ -38,7 +38,7 @@ TINY = [
 
 def hmepol(*args: str, cwd: Path, check: bool = True, **kw) -> subprocess.CompletedProcess:
     proc = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", *args],
+        [sys.executable, "-m", "hmepol_cli", *args],
         cwd=cwd,
         capture_output=True,
         text=True,
@@ -239,7 +239,7 @@ def test_killed_run_resumes_with_every_epoch_once_and_the_same_curves(tmp_path):
     config = [*TINY, f"epochs={epochs}", "algo.max_off_iters=30"]
     run = tmp_path / "killed"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hmepol_cli.cli", "train", *config, f"hydra.run.dir={run}"],
+        [sys.executable, "-m", "hmepol_cli", "train", *config, f"hydra.run.dir={run}"],
         cwd=tmp_path,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

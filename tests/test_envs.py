@@ -810,3 +810,40 @@ def test_no_ball_volume_hits_the_floor_on_the_initial_policy(name, batch_size):
     # The column would see the floor: the same particles with every agent pinned to one point.
     pinned = estimators.nearest_neighbours(torch.zeros_like(particles), 30)
     assert float(estimators.floor_share(pinned, 1e-10)) == 1.0
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    env=st.sampled_from(["corridor", "slope", "multigrid"]),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+    seed=st.integers(0, 2**31 - 1),
+    scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3, 2.0, 20.0]),
+    still=st.floats(0.0, 1.0),
+)
+def test_the_slide_that_skips_its_still_rounds_is_the_full_slide_bit_for_bit(
+    env, dtype, seed, scale, still
+):
+    """Once no agent moves, the slide finishes its rounds in closed form on a CPU: the ends
+    (their bits, zeros' signs included) and the blocked flags are those of all the rounds."""
+    world = make_world(OmegaConf.create({"name": env, "wind": 0.25 if env == "corridor" else None}))
+    world = world.to("cpu", dtype)
+    g = torch.Generator().manual_seed(seed)
+    n = 64
+    lo, hi = world._arena_lo, world._arena_hi
+    p = lo + (hi - lo) * torch.rand(n, 2, generator=g, dtype=dtype)
+    side = torch.randint(0, 6, (n,), generator=g)
+    p[side == 0, 0], p[side == 1, 1] = lo[0], hi[1]  # on an edge
+    p[side == 2] = -0.0
+    d = torch.randn(n, 2, generator=g, dtype=dtype) * scale
+    d[torch.rand(n, generator=g) < still] = -0.0  # standing agents, -0.0 among them
+    configurations = torch.randint(0, world.n_configurations, (n,), generator=g)
+    walls = (
+        world._obstacles.index_select(0, configurations)
+        if world._shared_obstacles is None
+        else world._shared_obstacles
+    )
+    fast = world._slide(p, d, walls, stop_when_still=True)
+    full = world._slide(p, d, walls, stop_when_still=False)
+    bits = torch.int64 if dtype == torch.float64 else torch.int32
+    assert torch.equal(fast[0].view(bits), full[0].view(bits))
+    assert torch.equal(fast[1], full[1])

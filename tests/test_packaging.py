@@ -267,3 +267,43 @@ def test_the_built_wheel_works_from_an_empty_folder_without_the_checkout(tmp_pat
     run("report", "runs", "--out", "report")
     assert any((empty / "report" / "figures").glob("*.png")), os.listdir(empty / "report")
     assert "| slope |" in (empty / "report" / "summary.md").read_text()
+
+
+def test_importing_the_cli_changes_no_environment_variable():
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    code = "import os, hmepol_cli.cli; print(os.environ.get('OMP_WAIT_POLICY'))"
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["None"]
+
+
+def test_the_command_sets_the_openmp_wait_policy_before_torch_loads():
+    """The OpenMP runtime reads OMP_WAIT_POLICY once, as torch loads it: the entry point sets it
+    first (unless the user did), and `hmepol` is that entry point."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    code = textwrap.dedent(
+        """
+        import builtins, os, sys
+        seen, real = [], builtins.__import__
+        def spy(name, *args, **kwargs):
+            if name == "torch" and "torch" not in sys.modules and not seen:
+                seen.append(os.environ.get("OMP_WAIT_POLICY"))
+            return real(name, *args, **kwargs)
+        builtins.__import__ = spy
+        sys.argv = ["hmepol", "--version"]
+        from hmepol_cli.__main__ import main
+        main()
+        print(seen)
+        """
+    )
+    for preset, expected in ((None, "PASSIVE"), ("ACTIVE", "ACTIVE")):
+        run_env = env if preset is None else {**env, "OMP_WAIT_POLICY": preset}
+        out = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, env=run_env, timeout=120
+        )
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.splitlines()[-1] == f"[{expected!r}]"
+    (script,) = [e for e in importlib.metadata.entry_points(group="console_scripts", name="hmepol")]
+    assert script.value == "hmepol_cli.__main__:main"

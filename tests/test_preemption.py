@@ -26,7 +26,7 @@ TIMES = ["seconds", "collect_seconds", "neighbours_seconds", "update_seconds", "
 
 def start(tmp_path: Path, *args: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "hmepol_cli.cli", *args],
+        [sys.executable, "-m", "hmepol_cli", *args],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -58,7 +58,7 @@ def uninterrupted(tmp_path_factory) -> pd.DataFrame:
     """epochs.csv of SLOWER run start to end: what every interrupted run must continue to."""
     plain = tmp_path_factory.mktemp("plain") / "run"
     subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "train", *SLOWER, f"hydra.run.dir={plain}"],
+        [sys.executable, "-m", "hmepol_cli", "train", *SLOWER, f"hydra.run.dir={plain}"],
         cwd=plain.parent, check=True, capture_output=True, timeout=300,
     )  # fmt: skip
     return pd.read_csv(plain / "epochs.csv")
@@ -79,7 +79,7 @@ def test_a_signal_stops_a_run_which_the_same_command_continues_exactly(
     assert info["status"] == "interrupted" and info["interruption"]["signal"] == signum.name
     assert not (tmp_path / "run" / ".lock").exists()
     again = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", *args],
+        [sys.executable, "-m", "hmepol_cli", *args],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert again.returncode == 0, again.stderr[-2000:]

@@ -134,7 +134,7 @@ def test_a_changed_spec_or_commit_is_refused(tmp_path):
     path.write_text(path.read_text().replace("alpha: 0.05", "alpha: 0.1"))
     with pytest.raises(UserError, match="changed since its pre-registration"):
         preregister(load_spec(path), "c0ffee")
-    out = subprocess.run([sys.executable, "-m", "hmepol_cli.cli", "study", str(path)],
+    out = subprocess.run([sys.executable, "-m", "hmepol_cli", "study", str(path)],
                          cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1 and "changed since" in out.stderr
@@ -147,7 +147,7 @@ def test_a_changed_spec_or_commit_is_refused(tmp_path):
 def test_a_bad_spec_is_one_line(tmp_path, bad, word):
     path = spec_file(tmp_path, n=2, stages=2)
     path.write_text(yaml.safe_dump({**yaml.safe_load(path.read_text()), **bad}))
-    out = subprocess.run([sys.executable, "-m", "hmepol_cli.cli", "study", str(path), "--status"],
+    out = subprocess.run([sys.executable, "-m", "hmepol_cli", "study", str(path), "--status"],
                          cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
     assert out.returncode == 2 and word in out.stderr and "Traceback" not in out.stderr
 
@@ -155,7 +155,7 @@ def test_a_bad_spec_is_one_line(tmp_path, bad, word):
 @pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
 def test_the_decisive_experiment_reads_as_in_results():
     out = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "study", "conf/study/decisive_corridor.yaml",
+        [sys.executable, "-m", "hmepol_cli", "study", "conf/study/decisive_corridor.yaml",
          "--status"], cwd=ROOT, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
@@ -175,7 +175,7 @@ def test_a_tiny_study_runs_is_interrupted_and_continues_to_its_decision(tmp_path
     }  # fmt: skip
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(spec))
-    command = [sys.executable, "-m", "hmepol_cli.cli", "study", str(path)]
+    command = [sys.executable, "-m", "hmepol_cli", "study", str(path)]
     proc = subprocess.Popen(command, cwd=tmp_path, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
     deadline = time.time() + 240
@@ -206,7 +206,7 @@ def test_a_tiny_study_runs_is_interrupted_and_continues_to_its_decision(tmp_path
     assert "AdaStop, stage" in out.stdout
     # the report of the study's folder: its curves, and its decisions stage by stage
     report = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "study"), "--out",
+        [sys.executable, "-m", "hmepol_cli", "report", str(tmp_path / "study"), "--out",
          str(tmp_path / "report")], cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert report.returncode == 0, report.stderr

@@ -24,7 +24,7 @@ def sweep(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
         [
             sys.executable,
             "-m",
-            "hmepol_cli.cli",
+            "hmepol_cli",
             "sweep",
             *TINY,
             "epochs=1",
@@ -115,7 +115,7 @@ def test_a_sweep_with_a_bad_value_is_refused_before_anything_is_written(tmp_path
 def test_two_identical_sweeps_into_one_folder_the_second_is_refused_in_a_table(tmp_path):
     by_seed = "hydra.sweep.subdir=seed${seed}"
     first = subprocess.Popen(
-        [sys.executable, "-m", "hmepol_cli.cli", "sweep", *TINY, "epochs=300", "seed=0",
+        [sys.executable, "-m", "hmepol_cli", "sweep", *TINY, "epochs=300", "seed=0",
          by_seed, f"hydra.sweep.dir={tmp_path / 'sweep'}"],
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -220,7 +220,7 @@ def test_a_sweep_over_winds_and_seeds_runs_as_one_population_of_four(tmp_path, g
         b = pd.read_csv(run_dir / "epochs.csv")
         pd.testing.assert_frame_equal(a.drop(columns=drop), b.drop(columns=drop), check_exact=True)
     report = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "report", str(tmp_path / "sweep")],
+        [sys.executable, "-m", "hmepol_cli", "report", str(tmp_path / "sweep")],
         capture_output=True,
         text=True,
         timeout=600,
@@ -288,7 +288,7 @@ def test_chapter_5_slope_is_two_programs(tmp_path):
     """make chapter5's slope sweep, planned (dry run): Mepol and alpha-Mepol's 16 runs are one
     population (one network; the objective and alpha are member-scalar), HMepol's 8 another."""
     proc = subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", "sweep",
+        [sys.executable, "-m", "hmepol_cli", "sweep",
          "experiment=slope_mepol,slope_alphamepol,slope_hmepol", "seed=0,1,2,3,4,5,6,7",
          "hydra/launcher=population", "hydra.launcher.dry_run=true",
          f"hydra.sweep.dir={tmp_path / 'sweep'}"],

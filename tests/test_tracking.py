@@ -105,7 +105,7 @@ def mlflow_entropy(store: Path, name: str) -> list[tuple[int, float]]:
 
 def hmepol(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "hmepol_cli.cli", *args],
+        [sys.executable, "-m", "hmepol_cli", *args],
         cwd=cwd, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
 
@@ -154,7 +154,7 @@ def test_a_killed_run_continues_its_tracking_runs_with_every_epoch_once(tmp_path
     args = ("train", *TINY, "epochs=10", "algo.trajectories=20", "algo.horizon=100", LOGGERS,
             f"hydra.run.dir={tmp_path / 'run'}")  # fmt: skip
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hmepol_cli.cli", *args], cwd=tmp_path,
+        [sys.executable, "-m", "hmepol_cli", *args], cwd=tmp_path,
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     run = tmp_path / "run"

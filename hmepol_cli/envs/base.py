@@ -376,16 +376,36 @@ class NavigationWorld:
         return self._slide(positions, displacement, obstacles)
 
     def _slide(
-        self, positions: torch.Tensor, displacement: torch.Tensor, walls: torch.Tensor
+        self,
+        positions: torch.Tensor,
+        displacement: torch.Tensor,
+        walls: torch.Tensor,
+        stop_when_still: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The reference's edge rule: the part of a move beyond an edge, turned a quarter turn
         (a slide along the edge, then back inside), round after round; each straight piece of
-        the path is tested against the walls. -> (end (N, 2), blocked (N,) bool)"""
+        the path is tested against the walls. -> (end (N, 2), blocked (N,) bool)
+
+        ``stop_when_still`` (not on a GPU, whose rollouts are captured graphs without
+        data-dependent branches): once no agent moves at the start of a round, that round and
+        the later ones are done in closed form (a standing point tested against the walls; the
+        position plus a zero piece); the result is the same, bit for bit, zeros' signs included
+        (tested against all ``EDGE_ROUNDS`` rounds)."""
         lo, hi = self._arena_lo, self._arena_hi
         p, d = positions, displacement
         blocked = torch.zeros(p.shape[0], dtype=torch.bool, device=p.device)
         inf = torch.full_like(p, float("inf"))
-        for _ in range(EDGE_ROUNDS):
+        stop_when_still = stop_when_still and p.device.type != "cuda"
+        for round_ in range(EDGE_ROUNDS):
+            if stop_when_still and not bool(d.any()):
+                # This round in closed form (no crossing: piece = d * 1 = d), then the later
+                # ones: each adds a piece of +0.0 (once is enough) and tests the same point.
+                blocked |= _segment_touches_box(p, d, walls)
+                p = p + d
+                if round_ + 1 < EDGE_ROUNDS:
+                    p = p + torch.zeros_like(p)
+                d = torch.zeros_like(d)
+                break
             # Fraction of d at which the path reaches each axis' edge ahead of it; a point on
             # the edge counts as beyond it (fraction 0).
             safe = torch.where(d == 0, torch.ones_like(d), d)
