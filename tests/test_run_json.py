@@ -181,3 +181,29 @@ def test_the_reports_tables_for_an_older_run_json_are_the_training_codes():
     edged = {name for name, world in ENVIRONMENTS.items() if issubclass(world, NavigationWorld)}
     assert set(EDGED_WORLDS) == edged
     assert GOAL_TASK_BOUNDS == GoalTask.return_bounds
+
+
+@pytest.mark.parametrize("env", ["slope", "corridor", "multigrid"])
+def test_walls_drawn_from_run_json_are_the_worlds_own_drawing(env):
+    """The report's walls (from the map run.json records) are the patches the world's own
+    drawing makes: same rectangles, colours, order and layers, same limits."""
+    from matplotlib.figure import Figure
+
+    from hmepol_cli.envs.render import draw_world
+    from hmepol_cli.plots import draw_walls
+
+    world = make_world(SimpleNamespace(name=env, wind=0.4))
+    recorded = WorldMap.from_json(json.loads(json.dumps(world.world_map())))
+    for config in range(world.n_configurations):
+        own, drawn = Figure().subplots(), Figure().subplots()
+        draw_world(own, world, config, force=False, start=False, zorder=3)
+        draw_walls(drawn, recorded, config)
+
+        def patches(ax) -> list[tuple]:
+            return [
+                (p.get_xy(), p.get_width(), p.get_height(), p.get_facecolor(), p.get_zorder())
+                for p in ax.patches
+            ]
+
+        assert patches(drawn) == patches(own) and len(own.patches) == len(world.walls[config]) + 1
+        assert (drawn.get_xlim(), drawn.get_ylim()) == (own.get_xlim(), own.get_ylim())
