@@ -1,24 +1,28 @@
 """Drawing blocks shared by the report and the evaluation: walls, visitation heatmaps, trajectories.
 
 Figures are built with :class:`matplotlib.figure.Figure` directly (no pyplot state, no GUI
-backend), so plotting works headless and from worker processes.
+backend), so plotting works headless and from worker processes. A world is drawn from plain
+geometry (:class:`WorldMap`: arena, start area, walls), the one run.json records, so the report
+draws a run's world without building it (and without the training code).
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
-from hmepol_cli.envs.render import draw_world
 
 OTHER_COLOURS = ("#ff7f0e", "#9467bd", "#8c564b", "#17becf", "#e377c2", "#bcbd22")
 LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1)), (0, (5, 2, 1, 2)))
@@ -28,6 +32,9 @@ TIME_CMAP = "plasma"  # a trajectory's colour by step: dark purple at the start,
 START_OUTLINE = "#d62728"  # the start area's outline on heatmaps
 TRAJECTORIES = 5  # trajectories per panel: more lines of one colour map cannot be followed
 DPI = 110
+WALL_COLOUR = "0.55"
+
+Rect = tuple[float, float, float, float]  # x0, y0, x1, y1 of an axis-aligned rectangle
 
 
 def algo_colour(algo: str) -> str:
@@ -50,17 +57,57 @@ def save(fig: Figure, path: Path) -> Path:
 
 
 # ------------------------------------------------------------------------------------ the world
-def has_map(world) -> bool:
-    """True for a world drawn as a map (an arena with walls); False for an unknown world or a
-    Gymnasium world, whose pictures show a projection of the observation on two indices."""
-    return world is not None and world.maps
+@dataclass(frozen=True)
+class WorldMap:
+    """What a picture of a 2-D world draws, as plain numbers: the arena, the start area and each
+    configuration's walls, every one a rectangle (x0, y0, x1, y1).
+
+    run.json records it as ``world_map`` (:meth:`to_json`; null for a world without a map, a
+    Gymnasium world), so a run's pictures and the report's are drawn from the same numbers."""
+
+    arena: Rect
+    start: Rect
+    walls: tuple[tuple[Rect, ...], ...]  # one tuple of rectangles per configuration
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any] | None) -> WorldMap | None:
+        """The map run.json's ``world_map`` holds; None for null (a world without a map)."""
+        if data is None:
+            return None
+
+        def rect(values: Sequence[float]) -> Rect:
+            x0, y0, x1, y1 = (float(v) for v in values)
+            return x0, y0, x1, y1
+
+        return cls(
+            arena=rect(data["arena"]),
+            start=rect(data["start"]),
+            walls=tuple(tuple(rect(w) for w in config) for config in data["walls"]),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """{"arena": [x0, y0, x1, y1], "start": [...], "walls": [[[x0, y0, x1, y1], ...], ...]}"""
+        return {
+            "arena": list(self.arena),
+            "start": list(self.start),
+            "walls": [[list(w) for w in config] for config in self.walls],
+        }
 
 
-def world_extent(world, positions: np.ndarray | None = None) -> tuple[float, float, float, float]:
+def has_map(world_map: WorldMap | None) -> bool:
+    """True for a world drawn as a map (an arena with walls); False (None) for a world whose map
+    is unknown or a Gymnasium world, whose pictures show a projection of the observation on two
+    indices."""
+    return world_map is not None
+
+
+def world_extent(
+    world_map: WorldMap | None, positions: np.ndarray | None = None
+) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1) of the arena, or of the data when the world has no map."""
-    if has_map(world):
-        a = world.arena
-        return a.x0, a.x1, a.y0, a.y1
+    if world_map is not None:
+        x0, y0, x1, y1 = world_map.arena
+        return x0, x1, y0, y1
     if positions is None or positions.size == 0:
         return -1.0, 1.0, -1.0, 1.0
     xy = positions.reshape(-1, 2)
@@ -69,25 +116,51 @@ def world_extent(world, positions: np.ndarray | None = None) -> tuple[float, flo
     return lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad
 
 
-def draw_walls(ax, world, config: int) -> None:
-    """The walls of one configuration (the world's own drawing), above the data."""
-    if not has_map(world):
+def draw_rectangles(ax: Axes, rects: Sequence[Rect], zorder: float) -> None:
+    """Walls: opaque grey rectangles at ``zorder``, so data drawn below them is hidden where the
+    agent can never be."""
+    for x0, y0, x1, y1 in rects:
+        ax.add_patch(
+            Rectangle(
+                (x0, y0), x1 - x0, y1 - y0, facecolor=WALL_COLOUR, edgecolor="none", zorder=zorder
+            )
+        )
+
+
+def draw_arena(ax: Axes, arena: Rect, zorder: float) -> None:
+    """The arena's black outline, and the axes cut to it at equal scales."""
+    x0, y0, x1, y1 = arena
+    ax.add_patch(
+        Rectangle(
+            (x0, y0), x1 - x0, y1 - y0, facecolor="none", edgecolor="black", linewidth=1.2,
+            zorder=zorder,
+        )
+    )  # fmt: skip
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+
+
+def draw_walls(ax: Axes, world_map: WorldMap | None, config: int) -> None:
+    """The walls of one configuration and the arena's outline, above the data."""
+    if world_map is None:
         return
-    draw_world(ax, world, config, force=False, start=False, zorder=3)
+    draw_rectangles(ax, world_map.walls[config], zorder=3)
+    draw_arena(ax, world_map.arena, zorder=3.3)
 
 
-def outline_start(ax, world) -> None:
+def outline_start(ax: Axes, world_map: WorldMap | None) -> None:
     """The start area as a dashed outline above the data and the walls."""
-    if not has_map(world):
+    if world_map is None:
         return
-    s = world.start
+    x0, y0, x1, y1 = world_map.start
     # A white rim under the dashes keeps the outline visible on any colour of the heatmap.
     for colour, width, dashes in (("white", 2.6, "-"), (START_OUTLINE, 1.4, (0, (3, 2)))):
         ax.add_patch(
             Rectangle(
-                (s.x0, s.y0),
-                s.x1 - s.x0,
-                s.y1 - s.y0,
+                (x0, y0),
+                x1 - x0,
+                y1 - y0,
                 facecolor="none",
                 edgecolor=colour,
                 linestyle=dashes,
@@ -170,7 +243,7 @@ def _blocks(fig: Figure, n_blocks: int, rows_per_block: int, cols: int, labels: 
 
 def heatmap_grid(
     fig: Figure,
-    world,
+    world_map: WorldMap | None,
     rows: Sequence[tuple[str, dict[int, np.ndarray]]],
     configuration_names: Sequence[str],
     max_cols: int = 5,
@@ -184,7 +257,7 @@ def heatmap_grid(
     cols = min(n_configurations, max_cols)
     rows_per_block = math.ceil(n_configurations / cols)
     some = next((p for _, by_c in rows for p in by_c.values()), None)
-    extent = world_extent(world, some)
+    extent = world_extent(world_map, some)
     bins = default_bins(extent)
     maps = [
         {c: visitation_log_prob(p, extent, bins) for c, p in by_config.items()}
@@ -202,7 +275,7 @@ def heatmap_grid(
             if c >= n_configurations:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}", has_map(world))
+            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}", has_map(world_map))
             ax.set_facecolor("white")
             if c in block:
                 image = ax.imshow(
@@ -213,11 +286,11 @@ def heatmap_grid(
                     vmin=vmin,
                     vmax=vmax,
                     interpolation="nearest",
-                    aspect="equal" if has_map(world) else "auto",
+                    aspect="equal" if has_map(world_map) else "auto",
                     zorder=2,
                 )
-            draw_walls(ax, world, c)
-            outline_start(ax, world)
+            draw_walls(ax, world_map, c)
+            outline_start(ax, world_map)
     if image is not None:
         cax = bar_fig.add_axes((0.15, 0.1, 0.18, 0.8))
         bar = bar_fig.colorbar(image, cax=cax)
@@ -251,7 +324,7 @@ def draw_trajectories(ax, positions: np.ndarray, n_trajectories: int = TRAJECTOR
 
 def trajectory_grid(
     fig: Figure,
-    world,
+    world_map: WorldMap | None,
     rows: Sequence[tuple[str, dict[int, np.ndarray]]],
     configuration_names: Sequence[str],
     n_trajectories: int = TRAJECTORIES,
@@ -263,7 +336,7 @@ def trajectory_grid(
     cols = min(n_configurations, max_cols)
     rows_per_block = math.ceil(n_configurations / cols)
     some = next((p for _, by_c in rows for p in by_c.values()), None)
-    extent = world_extent(world, some)
+    extent = world_extent(world_map, some)
     panels, bar_fig = fig.subfigures(1, 2, width_ratios=[cols * 2.5, 1.0])
     grids = _blocks(panels, len(rows), rows_per_block, cols, [label for label, _ in rows])
     lines = None
@@ -273,8 +346,8 @@ def trajectory_grid(
             if c >= n_configurations:
                 ax.set_axis_off()
                 continue
-            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}", has_map(world))
-            draw_walls(ax, world, c)
+            _map_axes(ax, extent, f"config {c}: {configuration_names[c]}", has_map(world_map))
+            draw_walls(ax, world_map, c)
             if c in by_config:
                 lines = draw_trajectories(ax, by_config[c], n_trajectories) or lines
     if lines is not None:
@@ -305,12 +378,13 @@ def save_run_plots(
     some = next(iter(positions_by_config.values()))
     n_traj, steps = some.shape[0], some.shape[1] - 1
     facts = {} if world is None else world.facts()
+    world_map = WorldMap.from_json(facts.get("world_map"))  # what run.json records of it
     world_name = facts.get("env_id") or (world.name if world is not None else "world")
     projection = None if world is None or world.maps else world.projection
     axes = "" if projection is None else f"\nx: observation[{projection[0]}], y: [{projection[1]}]"
 
     fig = new_figure(2.6 * cols + 1.2, 2.6 * rows + 0.6)
-    heatmap_grid(fig, world, [("", positions_by_config)], names)
+    heatmap_grid(fig, world_map, [("", positions_by_config)], names)
     fig.suptitle(
         f"{world_name}: log probability of state visitation\n"
         f"{n_traj} trajectories of T={steps} steps per configuration"
@@ -320,7 +394,7 @@ def save_run_plots(
     heatmap = save(fig, out_dir / "heatmap.png")
 
     fig = new_figure(2.6 * cols + 1.0, 2.6 * rows + 0.6)
-    trajectory_grid(fig, world, [("", positions_by_config)], names, n_trajectories)
+    trajectory_grid(fig, world_map, [("", positions_by_config)], names, n_trajectories)
     fig.suptitle(
         f"{world_name}: {min(n_trajectories, n_traj)} trajectories of T={steps} steps per "
         f"configuration\ncolour: step{axes}",

@@ -192,6 +192,7 @@ class Trainer:
                 epochs=int(self.cfg.epochs),
                 precision=self.precision.name,
                 blas=self.blas,
+                backtracking=self.settings.backtracking,  # the rule it ran with, for the report
                 epochs_done=int(member.directory.info().get("epochs_done", 0)),
                 config_names=list(self.world.configuration_names),
                 config_probs=list(self.world.configuration_probs),

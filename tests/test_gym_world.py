@@ -4,6 +4,7 @@ evaluation's projection and fine-tuning on the environment's own reward."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -325,6 +326,8 @@ def test_finetuning_uses_the_environments_reward_and_termination(tmp_path):
     finetune(cfg)
     rows = pd.read_csv(tmp_path / "ft" / "finetune.csv")
     assert len(rows) == 2 and rows.success_rate.isna().all()
+    recorded = json.loads((tmp_path / "ft" / "run.json").read_text())
+    assert recorded["return_bounds"] == [None, None] and recorded["world_map"] is None  # no map
     assert (rows.episode_length <= 10).all()
     # The returns of a rollout by hand: rewards of the live steps only.
     world = plan.world

@@ -1,10 +1,14 @@
 """The package's modules import one another without a circle: every import of a project module,
 at any depth of a file (a function's, or one under ``TYPE_CHECKING``, too), read from the source
-with ``ast``, makes an edge; the graph of those edges has no cycle."""
+with ``ast``, makes an edge; the graph of those edges has no cycle. The report imports nothing
+that trains (it reads what runs wrote), neither in its source nor when it runs."""
 
 from __future__ import annotations
 
 import ast
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -111,4 +115,80 @@ def test_a_type_checking_import_back_is_a_circle(tmp_path):
     assert cycle(graph) in (
         ["pkg.loop", "pkg.surrogate", "pkg.loop"],
         ["pkg.surrogate", "pkg.loop", "pkg.surrogate"],
+    )
+
+
+# The report reads what runs wrote (run.json, the tables) and draws it: it needs the run
+# directory's contract (hmepol_cli.run), the drawing (hmepol_cli.plots) and the algorithms'
+# names and colours (hmepol_cli.algorithms, plain data), never the code that trains. A study's
+# folder brings in hmepol_cli.study, which reads its decisions with the report's statistics.
+REPORT_MAY_IMPORT = (
+    "hmepol_cli",
+    "hmepol_cli.algorithms",
+    "hmepol_cli.errors",
+    "hmepol_cli.plots",
+    "hmepol_cli.run",
+    "hmepol_cli.study",
+)
+TRAINING_CODE = (
+    "torch",
+    "hmepol_cli.envs",
+    "hmepol_cli.config",
+    "hmepol_cli.trainer",
+    "hmepol_cli.finetune",
+    "hmepol_cli.checks",
+)
+
+
+def test_the_report_imports_only_what_reads_and_draws_runs():
+    graph = import_graph()
+
+    def outside(name: str) -> set[str]:
+        return {
+            m
+            for m in graph[name]
+            if m not in REPORT_MAY_IMPORT
+            and not m.startswith(("hmepol_cli.report", "hmepol_cli.run"))
+        }
+
+    report = [n for n in graph if n == "hmepol_cli.report" or n.startswith("hmepol_cli.report.")]
+    for name in [*report, "hmepol_cli.plots", "hmepol_cli.algorithms", "hmepol_cli.study"]:
+        assert not outside(name), f"{name} imports {sorted(outside(name))}"
+
+
+def test_a_report_loads_no_training_code(tmp_path):
+    """In a fresh interpreter, importing the report and making one (runs, a fine-tuning) loads
+    neither torch nor the modules that train."""
+    from tests.test_report import write_finetune_run, write_run
+
+    for seed in (0, 1):
+        write_run(tmp_path / "runs", seed=seed)
+        write_finetune_run(tmp_path / "runs", algo_init="mepol", seed=seed)
+    script = f"""
+import sys
+from pathlib import Path
+import hmepol_cli.report
+imported = set(sys.modules)
+hmepol_cli.report.run_report(Path({str(tmp_path / "runs")!r}), Path({str(tmp_path / "out")!r}))
+for when, names in (("import", imported), ("report", set(sys.modules))):
+    for name in {TRAINING_CODE!r}:
+        if any(m == name or m.startswith(name + ".") for m in names):
+            print(when, name)
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, check=False
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "runs used" in done.stdout
+    loaded = [line for line in done.stdout.splitlines() if line.startswith(("import ", "report "))]
+    assert loaded == []
+
+
+def test_the_config_defaults_the_report_reads_are_todays():
+    from hmepol_cli.report.defaults import DEFAULTS_FILE
+    from tools.config_defaults import config_defaults
+
+    assert json.loads(DEFAULTS_FILE.read_text()) == config_defaults(), (
+        f"{DEFAULTS_FILE.name} is not what the schema and conf/ give: write it again with "
+        "python -m tools.config_defaults"
     )

@@ -1,7 +1,8 @@
 """The report: discovery, grouping, t-intervals, skipped runs, figures and summary differences.
 
 Run directories are written by hand in the trainer's format (run.json, .hydra/config.yaml,
-epochs.csv, eval/final.npz, finetune.csv) with known numbers.
+epochs.csv, eval/final.npz, finetune.csv) with known numbers; what run.json records beyond the
+config (the rules, the world's map) is computed as tools/backfill_run_json.py does for a run.
 """
 
 from __future__ import annotations
@@ -20,14 +21,33 @@ import pandas as pd
 import pytest
 
 from hmepol_cli.cli import main
-from hmepol_cli.errors import ConfigError, UserError
+from hmepol_cli.envs import make_world
+from hmepol_cli.errors import UserError
+from hmepol_cli.plots import WorldMap
 from hmepol_cli.report import SkippedRunWarning, run_report
 from hmepol_cli.report.loading import discover_runs
-from hmepol_cli.report.runs import drop_duplicate_seeds, group_runs, varying_keys
+from hmepol_cli.report.runs import (
+    MapUnknownWarning,
+    drop_duplicate_seeds,
+    group_runs,
+    varying_keys,
+)
 from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci
 from hmepol_cli.report.summary import difference_table, final_entropy_table
 
 SLOPE_LOG_AREA = math.log(3.04)
+
+
+def record_world(run: Path) -> None:
+    """Add to the run's run.json what a run records beyond its config (the rules it ran with,
+    its world's map), computed from its config as the training code does; nothing for a world
+    this checkout cannot build (an unknown name, a wind it refuses)."""
+    from tools.backfill_run_json import BackfillError, backfill
+
+    try:
+        backfill(run)
+    except (BackfillError, ValueError):
+        pass
 
 
 def write_run(
@@ -89,6 +109,7 @@ def write_run(
             }
         )
     )
+    record_world(run)
     ramp = np.linspace(0.0, 1.0, done)
     table = {"epoch": np.arange(done), "entropy": final * ramp, "objective": final * ramp}
     if config_finals is None:
@@ -178,6 +199,7 @@ def write_finetune_run(
             }
         )
     )
+    record_world(run)
     speed = {"hmepol": 1.0, "mepol": 0.3, "scratch": 0.1}[algo_init]
     if returns is None:
 
@@ -769,51 +791,60 @@ def test_save_run_plots_writes_heatmap_and_trajectories(tmp_path):
     assert all(p.stat().st_size > 1000 for p in paths)
 
 
-def _slope_world_raising(monkeypatch, error: Exception) -> None:
-    from hmepol_cli.envs.slope import SlopeWorld
-
-    def from_config(cls, env_cfg):
-        raise error
-
-    monkeypatch.setattr(SlopeWorld, "from_config", classmethod(from_config))
-
-
 def _maps_drawn_with(monkeypatch) -> list[object]:
-    """The world each map (heatmaps, trajectories) of the report is drawn on, in order."""
+    """The map each map figure (heatmaps, trajectories) of the report is drawn on, in order."""
     from hmepol_cli.report import figures
 
-    worlds: list[object] = []
+    maps: list[object] = []
 
     def recording(draw):
-        def record(fig, world, *args, **kwargs):
-            worlds.append(world)
-            return draw(fig, world, *args, **kwargs)
+        def record(fig, world_map, *args, **kwargs):
+            maps.append(world_map)
+            return draw(fig, world_map, *args, **kwargs)
 
         return record
 
     monkeypatch.setattr(figures, "heatmap_grid", recording(figures.heatmap_grid))
     monkeypatch.setattr(figures, "trajectory_grid", recording(figures.trajectory_grid))
-    return worlds
+    return maps
 
 
-@pytest.mark.parametrize(
-    ("env", "wind", "refusal"),
-    [
-        ("nowhere", 0.4, None),  # a name make_world does not know (a Gymnasium id, another tree)
-        ("corridor", -1.0, None),  # a setting the world refuses (ValueError)
-        ("slope", 0.4, ConfigError("env.edge='x'; choose one of ...")),  # its constructor's
-    ],
-)
-def test_a_run_whose_world_cannot_be_built_is_reported_with_maps_without_walls(
-    tmp_path, monkeypatch, capsys, env, wind, refusal
-):
-    if refusal is not None:
-        _slope_world_raising(monkeypatch, refusal)
-    worlds = _maps_drawn_with(monkeypatch)
+@pytest.mark.parametrize("env", ["slope", "corridor", "multigrid"])
+def test_maps_are_drawn_from_the_map_run_json_records(tmp_path, monkeypatch, env):
+    maps = _maps_drawn_with(monkeypatch)
+    names = make_world(type("Env", (), {"name": env})()).configuration_names
     for seed in (0, 1):
-        write_run(tmp_path / "runs", env=env, wind=wind, seed=seed)
-    index = run_report(tmp_path / "runs", tmp_path / "report")
-    assert worlds and all(world is None for world in worlds)  # heatmaps, trajectories: no walls
+        write_run(tmp_path / "runs", env=env, seed=seed, configuration_names=names,
+                  configuration_probs=(1 / len(names),) * len(names))  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MapUnknownWarning)
+        run_report(tmp_path / "runs", tmp_path / "report")
+    world = make_world(type("Env", (), {"name": env, "wind": 0.4})())
+    built = WorldMap.from_json(world.world_map())
+    assert maps and all(drawn == built for drawn in maps)  # heatmaps, trajectories
+    assert built.arena == (world.arena.x0, world.arena.y0, world.arena.x1, world.arena.y1)
+    walls = [np.array([[b.x0, b.y0, b.x1, b.y1] for b in w]).reshape(-1, 4) for w in world.walls]
+    for drawn, wall in zip(built.walls, walls, strict=True):
+        np.testing.assert_array_equal(np.array(drawn).reshape(-1, 4), wall)
+
+
+@pytest.mark.parametrize(("env", "wind"), [("nowhere", 0.4), ("corridor", -1.0), ("slope", 0.4)])
+def test_a_run_json_without_a_map_is_drawn_without_walls_and_said_once(
+    tmp_path, monkeypatch, capsys, env, wind
+):
+    # An unknown world, one that refuses its config, a run.json made before it held the map.
+    maps = _maps_drawn_with(monkeypatch)
+    for seed in (0, 1):
+        run = write_run(tmp_path / "runs", env=env, wind=wind, seed=seed)
+        meta = json.loads((run / "run.json").read_text())
+        meta.pop("world_map", None)
+        (run / "run.json").write_text(json.dumps(meta))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        index = run_report(tmp_path / "runs", tmp_path / "report")
+    unknown = [w for w in caught if issubclass(w.category, MapUnknownWarning)]
+    assert len(unknown) == 1 and "2 run(s)" in str(unknown[0].message)
+    assert maps and all(world_map is None for world_map in maps)
     assert "2 runs used (1 groups), 0 skipped" in capsys.readouterr().out
     page = index.read_text()
     for name in ("heatmaps", "trajectories_mepol", "entropy_epochs", "final_entropy_bars"):
@@ -821,14 +852,14 @@ def test_a_run_whose_world_cannot_be_built_is_reported_with_maps_without_walls(
         assert f'src="figures/{env}_{name}.png"' in page
 
 
-@pytest.mark.parametrize("error", [TypeError("bug"), RuntimeError("bug"), KeyError("bug")])
-def test_an_unexpected_error_building_a_world_is_not_swallowed(tmp_path, monkeypatch, error):
-    # Only a world that cannot be built (ValueError, ConfigError) makes maps without walls.
-    _slope_world_raising(monkeypatch, error)
+def test_a_damaged_map_makes_the_run_one_the_report_skips(tmp_path):
     for seed in (0, 1):
         write_run(tmp_path / "runs", seed=seed)
-    with pytest.raises(type(error), match="bug"):
-        run_report(tmp_path / "runs", tmp_path / "report")
+    damaged = tmp_path / "runs" / "slope-mepol-wind0.4-seed1" / "run.json"
+    damaged.write_text(json.dumps({**json.loads(damaged.read_text()), "world_map": {"walls": 1}}))
+    with pytest.warns(SkippedRunWarning, match="world_map is not a map"):
+        runs, skipped = discover_runs(tmp_path / "runs")
+    assert [r.seed for r in runs] == [0] and len(skipped) == 1
 
 
 @pytest.fixture()

@@ -5,6 +5,7 @@ the seed a map shows and the old rules a run was made with."""
 from __future__ import annotations
 
 import html
+import json
 from pathlib import Path
 
 import pandas as pd
@@ -18,6 +19,7 @@ from hmepol_cli.report.runs import group_runs
 from hmepol_cli.report.series import series_styles
 from tests import test_report
 from tests.test_report import (
+    record_world,
     set_field,
     write_batches,
     write_finetune_run,
@@ -41,6 +43,10 @@ def variant_run(
         config.read_text().replace("algo:\n", f"algo:\n{keys}").replace("env:\n", f"env:\n{RULES}")
     )
     config.write_text(text)
+    meta = json.loads((run / "run.json").read_text())
+    rules = {key: value for key, value in meta.items() if key not in ("edge", "backtracking")}
+    (run / "run.json").write_text(json.dumps(rules))
+    record_world(run)  # the rules its config now says
     return run
 
 

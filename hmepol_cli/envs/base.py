@@ -130,8 +130,22 @@ class NavigationWorld:
 
     def facts(self, member: int | None = None) -> dict[str, object]:
         """What run.json records about the world (of a population's ``member``) beyond its
-        configurations."""
-        return {"edge": self.edge}
+        configurations: the edge rule, and the map pictures draw (:meth:`world_map`)."""
+        return {"edge": self.edge, "world_map": self.world_map()}
+
+    def world_map(self) -> dict[str, list]:
+        """The arena, the start area and each configuration's walls as [x0, y0, x1, y1] lists:
+        what a picture draws (:class:`hmepol_cli.plots.WorldMap`), so the report draws the world
+        from run.json without building it."""
+
+        def corners(box: Box) -> list[float]:
+            return [float(box.x0), float(box.y0), float(box.x1), float(box.y1)]
+
+        return {
+            "arena": corners(self.arena),
+            "start": corners(self.start),
+            "walls": [[corners(b) for b in walls] for walls in self.walls],
+        }
 
     # ------------------------------------------------------------------ states
     def entropy_features(self, states: torch.Tensor) -> torch.Tensor:

@@ -392,7 +392,8 @@ class GymWorld:
         return episodes, torch.stack(noise)
 
     def facts(self, member: int | None = None) -> dict[str, object]:
-        return {"env_id": self.env_id}
+        """The Gymnasium id, and no map (pictures project the observation on two indices)."""
+        return {"env_id": self.env_id, "world_map": None}
 
     def for_members(self, env_cfgs) -> GymWorld:
         """A population's members share one Gymnasium world (their env entries are equal)."""

@@ -22,8 +22,8 @@ from matplotlib.patches import Rectangle
 
 from hmepol_cli.envs.base import NavigationWorld
 from hmepol_cli.envs.world import World
+from hmepol_cli.plots import draw_arena, draw_rectangles
 
-WALL_COLOUR = "0.55"
 START_COLOUR = "#f2c500"  # the thesis highlights the start area in yellow
 FORCE_COLOUR = "#1f5fbf"
 REGION_COLOUR = "#9ec3ff"
@@ -48,20 +48,9 @@ def draw_world(
     slope acts on (gridworlds). Walls are opaque at ``zorder``, so a heatmap drawn below them
     is hidden where the agent can never be.
     """
-    a = world.arena
     if force:
         _draw_force_region(ax, world, config, zorder - 0.5)
-    for b in world.walls[config]:
-        ax.add_patch(
-            Rectangle(
-                (b.x0, b.y0),
-                b.x1 - b.x0,
-                b.y1 - b.y0,
-                facecolor=WALL_COLOUR,
-                edgecolor="none",
-                zorder=zorder,
-            )
-        )
+    draw_rectangles(ax, [(b.x0, b.y0, b.x1, b.y1) for b in world.walls[config]], zorder)
     if start:
         s = world.start
         ax.add_patch(
@@ -95,20 +84,8 @@ def draw_world(
                 color=FORCE_COLOUR,
                 zorder=zorder + 0.2,
             )
-    ax.add_patch(
-        Rectangle(
-            (a.x0, a.y0),
-            a.x1 - a.x0,
-            a.y1 - a.y0,
-            facecolor="none",
-            edgecolor="black",
-            linewidth=1.2,
-            zorder=zorder + 0.3,
-        )
-    )
-    ax.set_xlim(a.x0, a.x1)
-    ax.set_ylim(a.y0, a.y1)
-    ax.set_aspect("equal")
+    a = world.arena
+    draw_arena(ax, (a.x0, a.y0, a.x1, a.y1), zorder + 0.3)
 
 
 def show_world(world: World, path: str | Path, *, panel_size: float = 3.4) -> Path:

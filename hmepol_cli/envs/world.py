@@ -117,7 +117,7 @@ class World(Protocol):
 
     def facts(self, member: int | None = None) -> dict[str, object]:
         """What run.json records about the world (of a population's ``member``) beyond its
-        configurations (edge, wind, id)."""
+        configurations (edge, wind, id, the map pictures draw)."""
         ...
 
     def close(self) -> None: ...

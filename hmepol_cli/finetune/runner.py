@@ -41,6 +41,7 @@ from hmepol_cli.finetune.task import (
     TaskRollout,
     collect_episodes,
     make_tasks,
+    recorded_return_bounds,
 )
 from hmepol_cli.finetune.trpo import TRPO, TRPOSettings, TRPOStep
 from hmepol_cli.policies import Policy, make_policy
@@ -311,6 +312,8 @@ def finetune(cfg: DictConfig) -> Path:
             blas=choice,
             config_names=list(plan.world.configuration_names),
             config_probs=list(plan.world.configuration_probs),
+            return_bounds=recorded_return_bounds(plan.world.maps),
+            **{key: plan.world.facts().get(key) for key in ("edge", "world_map")},
         )
         write_json(out_dir / TARGETS_JSON, _targets_info(plan))
         tables = RunTables(out_dir, (FINETUNE_CSV,))

@@ -69,6 +69,14 @@ class RewardTask:
     reached = None  # episodes end when the environment ends them
 
 
+def recorded_return_bounds(maps: bool) -> list[float | None]:
+    """The bounds of the returns of the task a fine-tuning runs in a world with a map (``maps``:
+    a goal task) or without one (the world's own reward), as run.json records them for the
+    report: [low, high], null where a side is unbounded."""
+    task = GoalTask if maps else RewardTask
+    return [bound if math.isfinite(bound) else None for bound in task.return_bounds]
+
+
 @dataclass
 class TaskRollout(Rollout):
     """Episodes of one fine-tuning task, with what the task makes of them. The trajectories may

@@ -13,18 +13,17 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 
-from hmepol_cli.envs import World, make_world
 from hmepol_cli.plots import (
     BOUND_COLOUR,
     TRAJECTORIES,
+    WorldMap,
     algo_colour,
     heatmap_grid,
     new_figure,
@@ -81,15 +80,11 @@ class FigureRecord:
 
 
 # ------------------------------------------------------------------------------------- helpers
-def load_world(env: str, wind: float) -> World | None:
-    """The world's geometry (walls, arena), or None when this env cannot be built here: a name
-    make_world does not know (a Gymnasium world, named by its id; a world of another checkout)
-    or a setting the world refuses. Both are a ValueError (ConfigError is one); the maps are then
-    drawn without walls. Any other error is a bug and propagates."""
-    try:
-        return make_world(SimpleNamespace(name=env, wind=wind if np.isfinite(wind) else 0.0))
-    except ValueError:
-        return None
+def world_map_of(runs: Iterable[Run]) -> WorldMap | None:
+    """The map of these runs' world (one env) that their run.json records; None when none
+    records one (a world without a map, or runs made before run.json recorded it: their maps
+    are drawn without walls)."""
+    return next((run.world_map for run in runs if run.world_map is not None), None)
 
 
 def slug(text: str, limit: int = 80) -> str:
@@ -409,11 +404,11 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
     """Log visitation probability of the final policies, one figure per wind (5.3, 5.8, 5.11)."""
     records = []
     styles = series_styles(groups)
-    for wind, at, title, name in per_wind(env, groups, "heatmaps"):
+    for _, at, title, name in per_wind(env, groups, "heatmaps"):
         members = [g for g in at if g.representative().positions]
         if not members:
             continue
-        world = load_world(env, wind)
+        world_map = world_map_of(run for g in members for run in g.runs)
         names = members[0].configuration_names
         chosen = [(g, g.representative()) for g in members]
         rows = [
@@ -423,7 +418,7 @@ def heatmaps(env: str, groups: list[Group], out_dir: Path) -> list[FigureRecord]
         cols = min(len(names), 5)
         blocks = len(rows) * math.ceil(len(names) / cols)
         fig = new_figure(2.5 * cols + 1.2, 2.75 * blocks + 0.5)
-        heatmap_grid(fig, world, rows, names)
+        heatmap_grid(fig, world_map, rows, names)
         some = next(iter(chosen[0][1].positions.values()))
         fig.suptitle(
             f"{title}: log probability of state visitation\n"
@@ -448,12 +443,12 @@ def trajectories(env: str, groups: list[Group], out_dir: Path) -> list[FigureRec
             continue
         first = group.representative()
         runs = [first] + [r for r in runs if r is not first][: MAX_TRAJECTORY_SEEDS - 1]
-        world = load_world(env, group.wind)
+        world_map = world_map_of(group.runs)
         names = group.configuration_names
         cols = min(len(names), 5)
         blocks = len(runs) * math.ceil(len(names) / cols)
         fig = new_figure(2.5 * cols + 1.0, 2.75 * blocks + 0.5)
-        trajectory_grid(fig, world, [(f"seed {r.seed}", r.positions) for r in runs], names)
+        trajectory_grid(fig, world_map, [(f"seed {r.seed}", r.positions) for r in runs], names)
         steps = next(iter(first.positions.values())).shape[1] - 1
         fig.suptitle(
             f"{env}{wind_title(group.wind, several)}: {styles[group.label].label}\n{TRAJECTORIES} "

@@ -2,7 +2,8 @@
 
 A run directory is any directory holding ``run.json`` (:mod:`hmepol_cli.run` is the
 contract): config.yaml, run.json (status, epochs_done, env, algo, policy, seed, wind, config
-names/probs, free areas), epochs.csv, batches.csv (which configurations an epoch drew, where its
+names/probs, free areas, the edge and backtracking rules, the world's map, a fine-tuning's return
+bounds), epochs.csv, batches.csv (which configurations an epoch drew, where its
 entropy_c<c> must be a number), eval/final.npz and, for fine-tuning runs, finetune.csv.
 
 Runs that cannot be used (unfinished, missing or corrupt files, a row cut short or not a number)
@@ -22,8 +23,10 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.errors import TableError
+from hmepol_cli.plots import WorldMap
+from hmepol_cli.report.defaults import schema_defaults
 from hmepol_cli.report.rules import saved_rules
-from hmepol_cli.report.runs import Run, SkippedRun, SkippedRunWarning
+from hmepol_cli.report.runs import MapUnknownWarning, Run, SkippedRun, SkippedRunWarning
 from hmepol_cli.run import (
     BATCHES_CSV,
     CONFIG,
@@ -47,14 +50,6 @@ CONFIG_ENTROPY = re.compile(r"entropy_c(\d+)")  # entropy in configuration c (gr
 
 class RunError(Exception):
     """Why one run directory cannot be used (one line)."""
-
-
-def _schema_defaults() -> dict[str, Any]:
-    from omegaconf import OmegaConf
-
-    from hmepol_cli.config import Config
-
-    return flat_config(OmegaConf.to_container(OmegaConf.structured(Config)))
 
 
 def load_config(path: Path) -> dict[str, Any]:
@@ -194,9 +189,13 @@ def load_run(path: Path, unfinished: bool = False) -> Run:
     if not (path / FINETUNE_CSV).exists():
         # Keys added to the schema after a run was made take their defaults, so old and new runs
         # of the same settings group together; but the rules a run older than their keys ran
-        # with are the old ones (the run package's own reading), not today's defaults.
-        config = {**_schema_defaults(), **config, **saved_rules(config)}
+        # with are the ones run.json records (or their absence meant), not today's defaults.
+        config = {**schema_defaults(), **config, **saved_rules(config, meta)}
     run = Run(path=path, config=config, meta=meta)
+    try:
+        WorldMap.from_json(meta.get("world_map"))  # a map that cannot be drawn: not usable
+    except (KeyError, TypeError, ValueError) as err:
+        raise RunError(f"run.json's world_map is not a map ({type(err).__name__})") from None
     if (path / FINETUNE_CSV).exists():
         # A fine-tuning run is reported only through its returns.
         run.finetune = read_table(
@@ -225,4 +224,13 @@ def discover_runs(root: Path, unfinished: bool = False) -> tuple[list[Run], list
         except RunError as err:
             skipped.append(SkippedRun(marker.parent, str(err)))
             warnings.warn(f"skipping run {marker.parent}: {err}", SkippedRunWarning, stacklevel=2)
+    unknown = [run.path for run in runs if run.is_pretraining and not run.records_map]
+    if unknown:
+        warnings.warn(
+            f"{len(unknown)} run(s) (the first: {unknown[0]}) have a run.json that does not record "
+            "their world's map (world_map): their maps are drawn without walls; "
+            "tools/backfill_run_json.py adds it",
+            MapUnknownWarning,
+            stacklevel=2,
+        )
     return runs, skipped

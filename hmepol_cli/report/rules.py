@@ -1,35 +1,50 @@
 """Which rules and settings made a group's runs, beside today's defaults: the edge and
-backtracking rules a run ran with (for a run older than the key, the rule the run package gives
-it: :func:`~hmepol_cli.envs.base.edge_rule`, :func:`~hmepol_cli.config.backtracking_rule`), and
-which of an algorithm's groups ran at the algorithm's own settings (conf/algo/<name>.yaml: the
-thesis').
+backtracking rules a run ran with (run.json's ``edge`` and ``backtracking``; for a run.json
+older than those keys, the rule its config meant: :data:`RULE_WITHOUT_SETTING`), and which of an
+algorithm's groups ran at the algorithm's own settings (conf/algo/<name>.yaml: the thesis').
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from hmepol_cli.config import AlgoConfig, EnvConfig, backtracking_rule
-from hmepol_cli.envs import ENVIRONMENTS, NavigationWorld
-from hmepol_cli.envs.base import edge_rule
-from hmepol_cli.report.defaults import algo_defaults
+from hmepol_cli.report.defaults import algo_defaults, schema_defaults
 from hmepol_cli.report.runs import Group, varying_keys
 
+# The config key of each rule, and the run.json key that records the rule the run ran with.
+RULE_KEYS = {"env.edge": "edge", "algo.backtracking": "backtracking"}
+# The rule a config without the setting ran with, for a run.json that does not record it (made
+# before it did, and not brought up to date by tools/backfill_run_json.py). The training code
+# reads a missing setting so (hmepol_cli.envs.base.edge_rule, hmepol_cli.config.
+# backtracking_rule): the settings came with today's rules, and a run started before them ran,
+# and continues, with the rules of before.
+RULE_WITHOUT_SETTING = {"env.edge": "mirror", "algo.backtracking": "first_step"}
+# The worlds with an arena edge (hmepol_cli.envs' 2-D navigation worlds), for a run.json that
+# records neither its edge rule nor its map; the others (a Gymnasium world) have no edge.
+EDGED_WORLDS = ("slope", "corridor", "multigrid")
 # Today's defaults of the rules (the schema's); a run made with another is said to be.
-TODAY = {"env.edge": EnvConfig.edge, "algo.backtracking": AlgoConfig.backtracking}
+TODAY = {key: schema_defaults()[key] for key in RULE_KEYS}
 # How long and how wide a run is, not how its algorithm works: left out of "thesis settings".
 SCALE_KEYS = ("epochs", "algo.trajectories", "algo.horizon")
 
 
-def saved_rules(config: dict[str, Any]) -> dict[str, str]:
-    """The rules a run ran with, from its saved (flattened) config; the edge rule only for the
-    2-D worlds, the only ones that have edges."""
-    rules = {
-        "algo.backtracking": backtracking_rule({"backtracking": config.get("algo.backtracking")})
-    }
-    world = ENVIRONMENTS.get(str(config.get("env.name")))
-    if world is not None and issubclass(world, NavigationWorld):
-        rules["env.edge"] = edge_rule({"edge": config.get("env.edge")})
+def _has_edge(config: dict[str, Any], meta: dict[str, Any]) -> bool:
+    """Whether the run's world has an arena edge (a 2-D world): run.json records its edge rule,
+    or, older than that key and the map, names one of those worlds."""
+    if "edge" in meta:
+        return True
+    return "world_map" not in meta and config.get("env.name") in EDGED_WORLDS
+
+
+def saved_rules(config: dict[str, Any], meta: dict[str, Any]) -> dict[str, str]:
+    """The rules a run ran with (config key -> rule), from its run.json and, where that does not
+    record them, its saved (flattened) config; the edge rule only for the worlds with edges."""
+    rules = {}
+    for key, recorded in RULE_KEYS.items():
+        if key == "env.edge" and not _has_edge(config, meta):
+            continue
+        value = meta.get(recorded, config.get(key))
+        rules[key] = RULE_WITHOUT_SETTING[key] if value is None else str(value)
     return rules
 
 

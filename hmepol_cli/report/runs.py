@@ -19,9 +19,9 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
-from hmepol_cli.finetune.task import GoalTask, RewardTask
+from hmepol_cli.plots import WorldMap
 from hmepol_cli.report.defaults import algo_defaults
-from hmepol_cli.report.stats import FINAL_FRACTION, final_value
+from hmepol_cli.report.stats import FINAL_FRACTION, UNBOUNDED, final_value
 from hmepol_cli.run import CHECKPOINT
 
 # Config keys that say how a run was executed, not what was run: never a reason to split groups.
@@ -65,10 +65,19 @@ SHORT_NAMES = {
     "algo.objective": "objective",
 }
 ALGO_ORDER = tuple(ALGORITHMS)
+# A goal task's returns (hmepol_cli.finetune.task.GoalTask): the share of episodes that reached
+# the target. The bounds of a fine-tuning whose run.json does not record them (made before it
+# did) whose rows record a success rate; any other such run's returns are unbounded.
+GOAL_TASK_BOUNDS = (0.0, 1.0)
 
 
 class SkippedRunWarning(UserWarning):
     """A run directory that the report cannot use."""
+
+
+class MapUnknownWarning(UserWarning):
+    """Runs whose run.json does not record their world's map: their maps are drawn without
+    walls."""
 
 
 @dataclass(frozen=True)
@@ -182,13 +191,32 @@ class Run:
 
     @property
     def return_bounds(self) -> tuple[float, float]:
-        """The range a fine-tuning's returns can take: a goal task's [0, 1] (its rows record a
-        success rate), else none (a world's own reward)."""
+        """The range a fine-tuning's returns can take (run.json's ``return_bounds``, null where a
+        side is unbounded): a goal task's [0, 1], none for a world's own reward. A run.json
+        without it: [0, 1] where the rows record a success rate, else none."""
+        recorded = self.meta.get("return_bounds")
+        if recorded is not None:
+            low, high = recorded
+            return (
+                -math.inf if low is None else float(low),
+                math.inf if high is None else float(high),
+            )
         rows = self.finetune
         if rows is not None and "success_rate" in rows:
             if np.isfinite(pd.to_numeric(rows["success_rate"], errors="coerce")).all():
-                return GoalTask.return_bounds
-        return RewardTask.return_bounds
+                return GOAL_TASK_BOUNDS
+        return UNBOUNDED
+
+    @property
+    def world_map(self) -> WorldMap | None:
+        """The map run.json records of the run's world (``world_map``); None for a world without
+        one, or a run.json made before it recorded the map (:attr:`records_map`)."""
+        return WorldMap.from_json(self.meta.get("world_map"))
+
+    @property
+    def records_map(self) -> bool:
+        """Whether run.json says what the world's map is (null for a world without one)."""
+        return "world_map" in self.meta
 
     def entropy_curve(self, config: int | None = None) -> pd.Series:
         """Entropy per epoch (nats), indexed by epoch: average (None) or one configuration."""

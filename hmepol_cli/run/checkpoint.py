@@ -7,17 +7,20 @@ from __future__ import annotations
 import io
 import warnings
 from pathlib import Path
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from hmepol_cli.errors import RunDirError
 from hmepol_cli.run.io import atomic_write_bytes
 from hmepol_cli.run.layout import CHECKPOINT, FINAL_POLICY, epoch_checkpoint, run_config
 
+if TYPE_CHECKING:  # torch is imported where a checkpoint is written or read: the report,
+    import torch  # which imports this package for the run directory's contract, needs none
+
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     """Save tensors, state dicts and plain Python values atomically."""
+    import torch
+
     buffer = io.BytesIO()
     torch.save(state, buffer)
     atomic_write_bytes(path, buffer.getvalue())
@@ -28,6 +31,8 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
 
     A file that is not one (corrupt, truncated, or holding anything but weights) is refused in
     one line that names it."""
+    import torch
+
     try:
         with warnings.catch_warnings():  # torch's notes on foreign pickles: the refusal says it
             warnings.simplefilter("ignore")

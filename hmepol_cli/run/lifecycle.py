@@ -10,9 +10,8 @@ import socket
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from hmepol_cli.errors import Interrupted, RunDirError, StorageError
@@ -31,6 +30,9 @@ from hmepol_cli.run.provenance import (
     provenance,
     timestamp,
 )
+
+if TYPE_CHECKING:  # a device is only passed on: torch is not needed to read a run directory
+    import torch
 
 
 class RunDirectory:

@@ -13,11 +13,13 @@ import socket
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 from omegaconf import DictConfig, OmegaConf
+
+if TYPE_CHECKING:  # imported by provenance() only: the report reads run directories without it
+    import torch
 
 SOURCE = Path(__file__).resolve().parents[2]  # the checkout hmepol_cli/ lies in
 
@@ -102,6 +104,7 @@ def identity_differences(started: DictConfig | dict, now: DictConfig | dict) -> 
 def provenance(device: torch.device | str | None = None) -> dict[str, Any]:
     """Where and with what a run is made: versions, source commit, host, threads, device."""
     import scipy
+    import torch
 
     from hmepol_cli import __version__
 
