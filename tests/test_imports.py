@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hmepol_cli", "hydra_plugins")
 
@@ -156,6 +158,7 @@ def test_the_report_imports_only_what_reads_and_draws_runs():
         assert not outside(name), f"{name} imports {sorted(outside(name))}"
 
 
+@pytest.mark.slow  # a fresh interpreter (or several): make test runs it, make test-fast does not
 def test_a_report_loads_no_training_code(tmp_path):
     """In a fresh interpreter, importing the report and making one (runs, a fine-tuning) loads
     neither torch nor the modules that train."""

@@ -269,6 +269,7 @@ def test_the_built_wheel_works_from_an_empty_folder_without_the_checkout(tmp_pat
     assert "| slope |" in (empty / "report" / "summary.md").read_text()
 
 
+@pytest.mark.slow  # a fresh interpreter (or several): make test runs it, make test-fast does not
 def test_importing_the_cli_changes_no_environment_variable():
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     code = "import os, hmepol_cli.cli; print(os.environ.get('OMP_WAIT_POLICY'))"
@@ -279,6 +280,7 @@ def test_importing_the_cli_changes_no_environment_variable():
     assert out.stdout.split() == ["None"]
 
 
+@pytest.mark.slow  # a fresh interpreter (or several): make test runs it, make test-fast does not
 def test_the_command_sets_the_openmp_wait_policy_before_torch_loads():
     """The OpenMP runtime reads OMP_WAIT_POLICY once, as torch loads it: the entry point sets it
     first (unless the user did), and `hmepol` is that entry point."""
