@@ -302,7 +302,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     for j in range(len(winds), rows * cols):
         axes[j // cols, j % cols].set_axis_off()
     fig.suptitle(
-        f"{env}: entropy at the end of training {spread_title(groups)}{rules_title(groups)}"
+        f"{env}: final entropy, last 10% of epochs {spread_title(groups)}{rules_title(groups)}"
     )
     figure_legend(fig, axes)
     path = save(fig, out_dir / f"{env}_final_entropy_bars.png")
