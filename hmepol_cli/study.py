@@ -39,7 +39,8 @@ PREREGISTRATION = "preregistration.yaml"
 LAUNCHERS = ("local", "population", "population_local", "slurm", "population_slurm", "basic")
 WARN_HOURS = 3.0  # a stage estimated to need more than this on this machine is announced
 POLL_SECONDS = 30.0
-KEYS = {"name", "folder", "posthoc", "launcher", "seeds_per_stage", "stages", "alpha", "beta",
+KEYS = {"name", "folder", "posthoc", "kept_stages", "launcher", "seeds_per_stage", "stages",
+        "alpha", "beta",
         "permutations", "adastop_seed", "epochs", "metric", "half_width", "overrides", "arms",
         "comparisons"}  # fmt: skip
 
@@ -73,6 +74,12 @@ class Spec:
     half_width: float = 0.3
     overrides: tuple[str, ...] = ()
     posthoc: bool = False
+    kept_stages: int = 0  # stages 1..kept_stages: runs made before the pre-registration
+
+    @property
+    def registered_seeds(self) -> range:
+        """The seeds of the stages this study pre-registered (after its kept stages)."""
+        return range(self.kept_stages * self.n, self.stages * self.n)
 
 
 def _need(spec: dict, key: str, kind: type, where: str):  # noqa: ANN202
@@ -120,6 +127,13 @@ def load_spec(path: str | Path, text: str | None = None, folder: Path | None = N
         raise UserError(f"{where}: alpha={alpha} must lie in (0, 1)")
     if epochs < 1:
         raise UserError(f"{where}: epochs={epochs} must be at least 1")
+    kept = raw.get("kept_stages", 0)
+    if isinstance(kept, bool) or not isinstance(kept, int) or not 0 <= kept < stages:
+        raise UserError(f"{where}: kept_stages={kept!r} must be a whole number from 0 to "
+                        f"stages - 1 = {stages - 1}")  # fmt: skip
+    if kept and raw.get("posthoc", False):
+        raise UserError(f"{where}: kept_stages continues kept runs with pre-registered stages; "
+                        "posthoc: true only reads runs: give one or the other")  # fmt: skip
     launcher = str(raw.get("launcher", "local"))
     if launcher not in LAUNCHERS:
         raise UserError(f"{where}: launcher={launcher!r}; choose {', '.join(LAUNCHERS)}")
@@ -160,7 +174,7 @@ def load_spec(path: str | Path, text: str | None = None, folder: Path | None = N
         columns=tuple(map(str, columns)), window=(int(window[0]), int(window[1])),
         comparisons=tuple(pairs), launcher=launcher,
         half_width=float(raw.get("half_width", 0.3)), overrides=tuple(map(str, overrides)),
-        posthoc=bool(raw.get("posthoc", False)),
+        posthoc=bool(raw.get("posthoc", False)), kept_stages=kept,
     )  # fmt: skip
 
 
@@ -298,6 +312,14 @@ def status_lines(st: Status) -> list[str]:
     for (b, a), d in st.differences.items():
         if d.n:
             lines.append(f"{b} - {a}: {d.text()}; {d.answer(b, a)}")
+    if spec.kept_stages:
+        seeds = [s for s in spec.registered_seeds if s < st.complete_stages * spec.n]
+        for b, a in spec.comparisons:
+            d = paired({s: st.values[a][s] for s in seeds}, {s: st.values[b][s] for s in seeds},
+                       spec.half_width)  # fmt: skip
+            if d.n:
+                lines.append(f"{b} - {a}, the pre-registered stages' seeds alone "
+                             f"({seeds[0]}-{seeds[-1]}): {d.text()}; {d.answer(b, a)}")  # fmt: skip
     label = "AdaStop"
     if spec.posthoc:
         label += " (post-hoc reading: this experiment was pre-registered without stages)"
@@ -306,7 +328,9 @@ def status_lines(st: Status) -> list[str]:
     for stage in st.decisions:
         said = "; ".join(decision_text(a, b, d) for (a, b), d in stage.decisions.items())
         end = ", finished" if stage.finished else ""
-        lines.append(f"{label}, stage {stage.number} ({stage.seeds} seeds an arm): {said}{end}")
+        kept = " (kept runs, read post-hoc)" if stage.number <= spec.kept_stages else ""
+        lines.append(f"{label}, stage {stage.number}{kept} ({stage.seeds} seeds an arm): "
+                     f"{said}{end}")  # fmt: skip
     return lines
 
 
@@ -412,6 +436,14 @@ def run_study(spec: Spec) -> Status:
     if spec.posthoc:
         raise UserError(f"{spec.path} reads kept runs (posthoc: true) and trains nothing; use "
                         "hmepol study SPEC --status")  # fmt: skip
+    if spec.kept_stages:
+        kept = status(spec)
+        if kept.complete_stages < spec.kept_stages:
+            missing = stage_seeds(spec, kept.complete_stages + 1)
+            raise UserError(f"{spec.path}: stages 1-{spec.kept_stages} are kept runs, but stage "
+                            f"{kept.complete_stages + 1} (seeds {missing[0]}-{missing[-1]}) is not "
+                            f"complete under {spec.folder}; a study does not train its kept "
+                            "stages")  # fmt: skip
     preregister(spec, code_commit())
     while True:
         st = status(spec)

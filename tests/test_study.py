@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -214,3 +215,42 @@ def test_a_tiny_study_runs_is_interrupted_and_continues_to_its_decision(tmp_path
     stages = [d.number for d in st.decisions]
     assert all(f"AdaStop, stage {k} " in study_md for k in stages)
     assert "study.md" in json.loads((tmp_path / "report" / "report.json").read_text())["files"]
+
+
+def test_kept_stages_are_labelled_and_the_registered_seeds_are_compared_alone(tmp_path):
+    """A study that continues kept runs: its first stages are read post-hoc and say so, and the
+    paired difference of the seeds it pre-registered is given on its own."""
+    spec = load_spec(spec_file(tmp_path, n=2, stages=3, kept_stages=2))
+    assert list(spec.registered_seeds) == [4, 5]
+    for s in range(6):
+        make_run(spec.arms["a"].folder, s, 1.0 + 0.3 * s, 5)
+        make_run(spec.arms["b"].folder, s, 1.0 + 0.3 * s + (0.5 if s >= 4 else 0.0) + 0.1 * s, 5)
+    st = status(spec)
+    lines = status_lines(st)
+    assert [line for line in lines if "read post-hoc" in line][0].startswith("AdaStop, stage 1")
+    assert sum("(kept runs, read post-hoc)" in line for line in lines) == 2
+    assert not any("stage 3 (kept" in line for line in lines)
+    # seeds 4 and 5 alone: b - a = 0.5 + 0.1 s = 0.9 and 1.0, by hand
+    alone = [line for line in lines if "pre-registered stages' seeds alone (4-5)" in line]
+    assert len(alone) == 1 and alone[0].split(": ", 1)[1].startswith("+0.950 [")
+
+
+def test_a_study_does_not_train_its_kept_stages(tmp_path):
+    from hmepol_cli.study import run_study
+
+    spec = load_spec(spec_file(tmp_path, n=2, stages=3, kept_stages=2))
+    for s in range(3):  # stage 2 lacks seed 3
+        for arm in "ab":
+            make_run(spec.arms[arm].folder, s, 1.0, 5)
+    with pytest.raises(UserError, match=r"stage 2 \(seeds 2-3\) is not complete"):
+        run_study(spec)
+    assert not (spec.folder / "preregistration.yaml").exists()
+
+
+@pytest.mark.parametrize("extra, word", [
+    ({"kept_stages": 3}, "kept_stages=3"), ({"kept_stages": -1}, "kept_stages=-1"),
+    ({"kept_stages": 1, "posthoc": True}, "give one or the other"),
+])  # fmt: skip
+def test_kept_stages_out_of_range_or_with_posthoc_are_refused(tmp_path, extra, word):
+    with pytest.raises(UserError, match=re.escape(word)):
+        load_spec(spec_file(tmp_path, n=2, stages=3, **extra))
