@@ -10,6 +10,7 @@ the names it is close to, the options of a group, what kind of value a key takes
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 from hydra.errors import HydraException
@@ -27,16 +28,30 @@ CONFIG_MODULE = "hmepol_cli.conf"  # the configs, shipped inside the package
 
 def compose(config_name: str, overrides: list[str]) -> DictConfig:
     """The config ``overrides`` compose to (Hydra's own keys left out), or one clear line."""
-    from hydra import compose as hydra_compose
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
-    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
-    _check_flags(task, config_name)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
-            return hydra_compose(config_name=config_name, overrides=task)
+            return compose_here(config_name, overrides)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def compose_here(config_name: str, overrides: list[str], with_hydra: bool = False) -> DictConfig:
+    """:func:`compose` in the Hydra session already open; ``with_hydra``: Hydra's own node
+    too, with the overrides of its keys (the config a job of it runs with)."""
+    from hydra import compose as hydra_compose
+
+    task = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    _check_flags(task, config_name)
+    try:
+        return hydra_compose(
+            config_name=config_name,
+            overrides=overrides if with_hydra else task,
+            return_hydra_config=with_hydra,
+        )
     except (HydraException, OmegaConfBaseException) as error:
         raise ConfigError(_hydra_message(error, config_name)) from None
     except AssertionError:  # OmegaConf, setting a key below a group left at null
@@ -45,8 +60,6 @@ def compose(config_name: str, overrides: list[str]) -> DictConfig:
             f"cannot apply {' '.join(nested) or ' '.join(task)}: choose its group first "
             "(e.g. env=corridor, not env.name=corridor)"
         ) from None
-    finally:
-        GlobalHydra.instance().clear()
 
 
 def _check_flags(overrides: list[str], config_name: str) -> None:
@@ -221,10 +234,18 @@ def check_output_dirs(overrides: list[str]) -> None:
 
 def check_train(overrides: list[str]) -> DictConfig:
     """The config of ``hmepol train overrides``, checked, before Hydra writes anything."""
+    check_output_dirs(overrides)
+    return check_config(compose("config", overrides), overrides, compose)
+
+
+def check_config(
+    cfg: DictConfig, overrides: list[str], compose_with: Callable[..., DictConfig]
+) -> DictConfig:
+    """``cfg``, the config ``overrides`` composed to (Hydra's reading of every value, quoted
+    paths too), checked: its keys, its values, a resumed run's, every population member's
+    (composed with ``compose_with``). -> the config the run has (a resumed run's own)."""
     from hmepol_cli.config import Config
 
-    check_output_dirs(overrides)
-    cfg = compose("config", overrides)  # Hydra's reading of every value, quoted paths too
     check_known_keys(cfg, OmegaConf.structured(Config))
     if cfg.resume is not None:
         run_config(Path(cfg.resume))  # a clear error for a folder that is not a run
@@ -233,11 +254,13 @@ def check_train(overrides: list[str]) -> DictConfig:
     if cfg.resume is None:  # a continued run keeps what it started with
         check_applies(cfg, overrides)
     if cfg.seeds or cfg.members:
-        check_members_of(cfg, overrides)
+        check_members_of(cfg, overrides, compose_with)
     return cfg
 
 
-def check_members_of(cfg: DictConfig, overrides: list[str]) -> None:
+def check_members_of(
+    cfg: DictConfig, overrides: list[str], compose_with: Callable[..., DictConfig] | None = None
+) -> None:
     """Each member of a population (``seeds=[...]``, ``members=[...]``) composed as the run will
     compose it, and validated, before anything is written; a refusal names the member."""
     from hmepol_cli.members import check_members, common_overrides, member_config, member_overrides
@@ -246,7 +269,7 @@ def check_members_of(cfg: DictConfig, overrides: list[str]) -> None:
     members = []
     for own in member_overrides(cfg):
         try:
-            member = member_config(cfg, common, own, compose)
+            member = member_config(cfg, common, own, compose_with or compose)
             validate(member)
             check_applies(member, [*common, *own])
         except ConfigError as error:

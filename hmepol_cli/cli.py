@@ -1,11 +1,12 @@
 """The ``hmepol`` command: train, sweep, report, finetune, show.
 
-``main`` takes the subcommand from argv, checks every config the command would run before
-anything is written (:mod:`hmepol_cli.checks`, with Hydra's compose API), then hands the
-arguments to a ``@hydra.main`` app, so single runs, ``--cfg job``, ``-m`` and launchers all
-keep working (Hydra facts). Mistakes of input are one line (exit 2); a run whose
-numbers stop making sense is recorded as failed and the command exits 1; anything else is a bug
-and keeps its traceback.
+``main`` takes the subcommand from argv and checks every config the command would run before
+anything is written (:mod:`hmepol_cli.checks`, with Hydra's compose API). ``train`` composes its
+config once, checks it and runs it as Hydra's job (:func:`run_train`); a sweep checks every job,
+then hands the arguments to the ``@hydra.main`` app, whose launcher composes each job it runs
+(as do ``--cfg job``, ``--help`` and Hydra's other flags). Mistakes of input are one line (exit
+2); a run whose numbers stop making sense is recorded as failed and the command exits 1;
+anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -26,14 +27,17 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.plugins import Plugins
 from hydra.types import RunMode
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from hmepol_cli.checks import (
     CONFIG_MODULE,
+    check_config,
     check_finetune_overrides,
+    check_output_dirs,
     check_sweep,
     check_train,
     compose,
+    compose_here,
     override_value,
     unquote,
 )
@@ -320,8 +324,9 @@ def interrupted_line(error: Interrupted) -> str:
     return f"{error}: kept {kept} (the last checkpoint); run the same command again to continue"
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
-def train_app(cfg: DictConfig) -> list[str] | None:
+def train_job(cfg: DictConfig) -> list[str] | None:
+    """A Hydra job of ``hmepol train`` or of a sweep: its runs, and what happened to them as one
+    line (a sweep's failed or interrupted jobs are reported to it instead)."""
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     with preemptible():
         try:
@@ -342,6 +347,38 @@ def train_app(cfg: DictConfig) -> list[str] | None:
             raise SystemExit(error.exit_code) from None
     _report_job("done", cfg)
     return runs
+
+
+# Hydra's own command line: sweeps (each job composed by its launcher), --cfg, --help, -m.
+train_app = hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")(train_job)
+
+
+def run_train(overrides: list[str]) -> None:
+    """``hmepol train overrides``: the config composed once, with Hydra's own node, checked
+    before anything is written, then run as Hydra's job in the folder it names (what
+    ``@hydra.main`` does, without composing it again)."""
+    from hydra import initialize_config_module
+    from hydra._internal.callbacks import Callbacks  # Hydra 1.3 (pinned below 1.4)
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.utils import run_job
+    from hydra.types import HydraContext
+
+    check_output_dirs(overrides)
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(CONFIG_MODULE, version_base="1.3", job_name="cli"):
+            config = compose_here("config", overrides, with_hydra=True)
+            task = OmegaConf.masked_copy(config, [k for k in config if k != "hydra"])
+            check_config(task, overrides, compose_here)
+            with open_dict(config):
+                config.hydra.mode = RunMode.RUN
+            context = HydraContext(
+                config_loader=GlobalHydra.instance().config_loader(), callbacks=Callbacks(config)
+            )
+            job = run_job(train_job, config, "hydra.run.dir", None, context)
+            job.return_value  # noqa: B018  (re-raises what the job raised)
+    finally:
+        GlobalHydra.instance().clear()
 
 
 def _sweep(args: list[str], n_jobs: int = 0) -> None:
@@ -525,10 +562,13 @@ def main(argv: list[str] | None = None) -> None:
     setup()
     try:
         if command == "train":
-            if not _asks_for_help(rest):
-                check_train([a for a in rest if not a.startswith("-")])
-            sys.argv = ["hmepol", *rest]
-            train_app()
+            if any(a.startswith("-") for a in rest):  # Hydra's own flags: its command line
+                if not _asks_for_help(rest):
+                    check_train([a for a in rest if not a.startswith("-")])
+                sys.argv = ["hmepol", *rest]
+                train_app()
+            else:
+                run_train(rest)
         elif command == "sweep":
             if not _asks_for_help(rest):
                 n_jobs = check_sweep([a for a in rest if not a.startswith("-")])

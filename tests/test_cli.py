@@ -320,3 +320,29 @@ def test_report_of_a_folder_without_runs_is_one_clear_line(tmp_path):
     proc = hmepol("report", str(tmp_path / "nothing"), cwd=tmp_path, check=False)
     assert proc.returncode != 0 and proc.stderr.startswith("hmepol: error:")
     assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("population", [[], ["seeds=[0,1]"]])
+def test_train_composes_its_config_once_and_checks_it_before_writing(
+    tmp_path, monkeypatch, population
+):
+    """`hmepol train` composes its config once (Hydra's compose, with its own node), checks it,
+    and runs it as Hydra's job: one composition, and each config validated once."""
+    from hydra._internal.hydra import Hydra
+
+    import hmepol_cli.checks as checks
+    from hmepol_cli.cli import main
+
+    composed, validated = [], []
+    real_compose, real_validate = Hydra.compose_config, checks.validate
+    monkeypatch.setattr(
+        Hydra,
+        "compose_config",
+        lambda self, *a, **k: composed.append(1) or real_compose(self, *a, **k),
+    )
+    monkeypatch.setattr(checks, "validate", lambda cfg: validated.append(1) or real_validate(cfg))
+    run = tmp_path / "run"
+    main(["train", *TINY, "epochs=1", *population, f"hydra.run.dir={run}"])
+    # validated once each: the job's config, and each member's (seeds=[0,1]: two more)
+    assert (len(composed), len(validated)) == (1, 3 if population else 1)
+    assert (run / "seed1" / "run.json").exists() if population else (run / "run.json").exists()
