@@ -259,7 +259,7 @@ def check_config(
 
 
 def check_members_of(
-    cfg: DictConfig, overrides: list[str], compose_with: Callable[..., DictConfig] | None = None
+    cfg: DictConfig, overrides: list[str], compose_with: Callable[..., DictConfig]
 ) -> None:
     """Each member of a population (``seeds=[...]``, ``members=[...]``) composed as the run will
     compose it, and validated, before anything is written; a refusal names the member."""
@@ -269,7 +269,7 @@ def check_members_of(
     members = []
     for own in member_overrides(cfg):
         try:
-            member = member_config(cfg, common, own, compose_with or compose)
+            member = member_config(cfg, common, own, compose_with)
             validate(member)
             check_applies(member, [*common, *own])
         except ConfigError as error:
