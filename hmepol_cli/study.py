@@ -42,7 +42,11 @@ POLL_SECONDS = 30.0
 KEYS = {"name", "folder", "posthoc", "kept_stages", "launcher", "seeds_per_stage", "stages",
         "alpha", "beta",
         "permutations", "adastop_seed", "epochs", "metric", "half_width", "overrides", "arms",
-        "comparisons"}  # fmt: skip
+        "comparisons", "parallel_sweeps", "seeds_per_sweep"}  # fmt: skip
+# How runs are executed, not what they compute: the keys an amendment may change (and the
+# overrides that name the threads a run uses). Everything else is the study's question.
+EXECUTION_KEYS = ("launcher", "parallel_sweeps", "seeds_per_sweep")
+EXECUTION_OVERRIDES = ("threads",)
 
 
 @dataclass(frozen=True)
@@ -75,6 +79,12 @@ class Spec:
     overrides: tuple[str, ...] = ()
     posthoc: bool = False
     kept_stages: int = 0  # stages 1..kept_stages: runs made before the pre-registration
+    parallel_sweeps: int = 1  # sweeps of a stage that run at the same time
+    seeds_per_sweep: int = 0  # seeds one sweep trains (a population's members); 0: the stage's
+
+    @property
+    def sweep_size(self) -> int:
+        return self.seeds_per_sweep or self.n
 
     @property
     def registered_seeds(self) -> range:
@@ -137,6 +147,15 @@ def load_spec(path: str | Path, text: str | None = None, folder: Path | None = N
     launcher = str(raw.get("launcher", "local"))
     if launcher not in LAUNCHERS:
         raise UserError(f"{where}: launcher={launcher!r}; choose {', '.join(LAUNCHERS)}")
+    parallel = raw.get("parallel_sweeps", 1)
+    if isinstance(parallel, bool) or not isinstance(parallel, int) or parallel < 1:
+        raise UserError(f"{where}: parallel_sweeps={parallel!r} must be a whole number >= 1 (the "
+                        "sweeps that run at the same time; each uses the threads its overrides "
+                        "give)")  # fmt: skip
+    per_sweep = raw.get("seeds_per_sweep", n)
+    if isinstance(per_sweep, bool) or not isinstance(per_sweep, int) or not 1 <= per_sweep <= n:
+        raise UserError(f"{where}: seeds_per_sweep={per_sweep!r} must be a whole number from 1 "
+                        f"to seeds_per_stage = {n}")  # fmt: skip
     folder = folder or Path(str(_need(raw, "folder", str, where)))
     arms_raw = _need(raw, "arms", dict, where)
     if not isinstance(arms_raw, dict) or len(arms_raw) < 2:
@@ -174,8 +193,20 @@ def load_spec(path: str | Path, text: str | None = None, folder: Path | None = N
         columns=tuple(map(str, columns)), window=(int(window[0]), int(window[1])),
         comparisons=tuple(pairs), launcher=launcher,
         half_width=float(raw.get("half_width", 0.3)), overrides=tuple(map(str, overrides)),
-        posthoc=bool(raw.get("posthoc", False)), kept_stages=kept,
+        posthoc=bool(raw.get("posthoc", False)), kept_stages=kept, parallel_sweeps=parallel,
+        seeds_per_sweep=per_sweep,
     )  # fmt: skip
+
+
+def _question(spec: Spec) -> dict:
+    """What a study asks and measures: its spec less the keys that only say how its runs are
+    executed (EXECUTION_KEYS, the threads override) and less its comments."""
+    raw = dict(yaml.safe_load(spec.text) or {})
+    for key in EXECUTION_KEYS:
+        raw.pop(key, None)
+    raw["overrides"] = [o for o in raw.get("overrides", []) or []
+                        if str(o).partition("=")[0] not in EXECUTION_OVERRIDES]  # fmt: skip
+    return raw
 
 
 # ------------------------------------------------------------------------------- the runs
@@ -224,6 +255,12 @@ def stage_seeds(spec: Spec, stage: int) -> list[int]:
     return list(range((stage - 1) * spec.n, stage * spec.n))
 
 
+def sweep_seeds(spec: Spec, stage: int) -> list[list[int]]:
+    """The stage's seeds as the sweeps that train them, ``seeds_per_sweep`` each."""
+    seeds = stage_seeds(spec, stage)
+    return [seeds[i : i + spec.sweep_size] for i in range(0, len(seeds), spec.sweep_size)]
+
+
 @dataclass
 class Status:
     spec: Spec
@@ -242,21 +279,24 @@ class Status:
     def stage_hours(self, stage: int, launcher: str | None = None) -> float:
         """Hours the stage's unfinished epochs need on this machine, at each arm's pace (a
         population trains its members together: the slowest member; otherwise one after the
-        other); NaN while no run of the arm has a pace."""
+        other), its sweeps ``parallel_sweeps`` at a time (the longer of the longest sweep and
+        their sum shared out); NaN while no run of the arm has a pace."""
         population = (launcher or self.spec.launcher).startswith("population")
-        total = 0.0
+        sweeps = []
         for runs in self.runs.values():
             paces = [r.pace for r in runs.values() if math.isfinite(r.pace)]
             pace = float(pd.Series(paces).median()) if paces else math.nan
-            left = [self.spec.epochs - (runs[s].done if s in runs else 0)
-                    for s in stage_seeds(self.spec, stage)]  # fmt: skip
-            left = [max(0, x) for x in left]
-            if not any(left):
-                continue
-            if not math.isfinite(pace):
-                return math.nan
-            total += pace * (max(left) if population else sum(left))
-        return total / 3600
+            for seeds in sweep_seeds(self.spec, stage):
+                left = [max(0, self.spec.epochs - (runs[s].done if s in runs else 0))
+                        for s in seeds]  # fmt: skip
+                if not any(left):
+                    continue
+                if not math.isfinite(pace):
+                    return math.nan
+                sweeps.append(pace * (max(left) if population else sum(left)))
+        if not sweeps:
+            return 0.0
+        return max(max(sweeps), sum(sweeps) / self.spec.parallel_sweeps) / 3600
 
 
 def status(spec: Spec) -> Status:
@@ -294,6 +334,7 @@ def status_lines(st: Status) -> list[str]:
              f"{spec.stages} stages, alpha {spec.alpha:g}, metric: mean of "
              f"{', '.join(spec.columns)} over epochs {spec.window[0]}-{spec.window[1]} of "
              f"{spec.epochs}; runs under {spec.folder}"]  # fmt: skip
+    lines += [f"  {line}" for line in amendment_lines(spec.folder / PREREGISTRATION)]
     for name, runs in st.runs.items():
         if not runs:
             lines.append(f"  {name}: no runs yet")
@@ -366,26 +407,85 @@ def code_commit() -> str:
         return "unknown"
 
 
+def _registration(path: Path) -> tuple[dict, dict]:
+    """(the pre-registration file's content, the registration in force: its last amendment,
+    or the pre-registration itself)."""
+    written = yaml.safe_load(path.read_text()) or {}
+    amendments = written.get("amendments") or []
+    return written, (amendments[-1] if amendments else written)
+
+
+def _write_yaml(path: Path, content: dict) -> None:
+    """Replace ``path`` whole (a crash leaves the old file or the new one, never half)."""
+    part = path.with_name(path.name + ".part")
+    part.write_text(yaml.safe_dump(content, sort_keys=False, width=100))
+    os.replace(part, path)
+
+
 def preregister(spec: Spec, commit: str) -> Path:
     """Write the pre-registration before the first run; refuse (UserError) once the spec or
-    the commit differs from it."""
+    the commit differs from the registration in force (the last amendment, if any)."""
     path = spec.folder / PREREGISTRATION
     if path.exists():
-        written = yaml.safe_load(path.read_text()) or {}
-        if written.get("spec") != spec.text:
+        _, current = _registration(path)
+        if current.get("spec") != spec.text:
             raise UserError(f"{spec.path} changed since its pre-registration {path}; a "
-                            "pre-registered study runs as written: restore the spec or give a "
-                            "new folder")  # fmt: skip
-        if written.get("commit") != commit:
-            was = str(written.get("commit"))[:12]
+                            "pre-registered study runs as written: restore the spec, give a "
+                            "new folder, or (for how its runs are executed only) amend it with "
+                            "--amend")  # fmt: skip
+        if current.get("commit") != commit:
+            was = str(current.get("commit"))[:12]
             raise UserError(f"the code is at commit {commit[:12]}, not {was} pre-registered in "
                             f"{path}; run the study from that commit")  # fmt: skip
         return path
     spec.folder.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-    path.write_text(yaml.safe_dump({"written": stamp, "commit": commit, "spec": spec.text},
-                                   sort_keys=False, width=100))  # fmt: skip
+    _write_yaml(path, {"written": stamp, "commit": commit, "spec": spec.text})
     return path
+
+
+def amend(spec: Spec, commit: str, reason: str) -> Path:
+    """Record an amendment: the spec as now given and the code's commit, for the runs and
+    epochs not yet trained. Only how runs are executed may change (EXECUTION_KEYS, the threads
+    override), never the question (arms, presets, seeds, metric, test, epochs); UserError
+    otherwise. The epochs each run had reached are written beside it."""
+    path = spec.folder / PREREGISTRATION
+    if not path.is_file():
+        raise UserError(f"{spec.folder} has no pre-registration to amend; run the study first "
+                        "(it pre-registers itself before its first run)")  # fmt: skip
+    if not reason.strip():
+        raise UserError("--amend needs its reason: why the execution changes, and why the "
+                        "numbers do not")  # fmt: skip
+    written, current = _registration(path)
+    before = load_spec(path, str(current.get("spec", "")), folder=spec.folder)
+    was, now = _question(before), _question(spec)
+    changed = sorted(k for k in set(was) | set(now) if was.get(k) != now.get(k))
+    if changed:
+        raise UserError(f"an amendment changes only how runs are executed ("
+                        f"{', '.join(EXECUTION_KEYS)}, the threads override); {spec.path} "
+                        f"also changes {', '.join(changed)}: that is a new study (a new "
+                        "folder)")  # fmt: skip
+    if current.get("spec") == spec.text and current.get("commit") == commit:
+        raise UserError(f"{spec.path} at commit {commit[:12]} is already the registration in "
+                        f"force in {path}; nothing to amend")  # fmt: skip
+    runs = {name: {seed: run.done for seed, run in sorted(arm_runs(arm, spec.epochs).items())}
+            for name, arm in spec.arms.items()}  # fmt: skip
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    written.setdefault("amendments", []).append({
+        "written": stamp, "commit": commit, "reason": reason.strip(),
+        "epochs_done_before": runs, "spec": spec.text,
+    })  # fmt: skip
+    _write_yaml(path, written)
+    return path
+
+
+def amendment_lines(path: Path) -> list[str]:
+    """One line per amendment of a pre-registration, for --status and the report."""
+    if not path.is_file():
+        return []
+    written, _ = _registration(path)
+    return [f"amended {a.get('written', '?')} at commit {str(a.get('commit', '?'))[:12]}: "
+            f"{a.get('reason', '')}" for a in written.get("amendments") or []]  # fmt: skip
 
 
 def sweep_command(spec: Spec, arm: Arm, seeds: list[int]) -> list[str]:
@@ -402,33 +502,67 @@ def say(line: str) -> None:
     print(f"hmepol study: {line}", flush=True)
 
 
-def _watch(spec: Spec, stage: int, process: subprocess.Popen, warned: list[bool]) -> int:
-    """Wait for one sweep, printing a progress line and, once its first epochs give a pace, a
-    warning when the stage needs more than WARN_HOURS."""
-    last = ""
-    while True:
-        try:
-            return process.wait(timeout=POLL_SECONDS)
-        except subprocess.TimeoutExpired:
-            pass
-        st = status(spec)
-        seeds = stage_seeds(spec, stage)
-        done = sum(st.runs[a][s].done for a in st.runs for s in seeds if s in st.runs[a])
-        total = spec.epochs * len(seeds) * len(spec.arms)
-        hours = st.stage_hours(stage)
-        left = f", ~{hours:.1f} h left" if math.isfinite(hours) else ""
-        line = f"stage {stage} of {spec.stages}: {done}/{total} epochs{left}"
-        if line != last:
-            say(line)
-            last = line
-        if not warned[0] and math.isfinite(hours) and hours > WARN_HOURS:
-            warned[0] = True
-            print(
-                f"hmepol: warning: stage {stage} of {spec.name} needs about {hours:.1f} h on "
-                "this machine (estimated from its first epochs)",
-                file=sys.stderr,
-                flush=True,
-            )
+def _progress(spec: Spec, stage: int, last: str, warned: list[bool]) -> str:
+    """Print the stage's progress line when it changed, and once, when its first epochs give
+    a pace, a warning if the stage needs more than WARN_HOURS; the line printed."""
+    st = status(spec)
+    seeds = stage_seeds(spec, stage)
+    done = sum(st.runs[a][s].done for a in st.runs for s in seeds if s in st.runs[a])
+    total = spec.epochs * len(seeds) * len(spec.arms)
+    hours = st.stage_hours(stage)
+    left = f", ~{hours:.1f} h left" if math.isfinite(hours) else ""
+    line = f"stage {stage} of {spec.stages}: {done}/{total} epochs{left}"
+    if line != last:
+        say(line)
+    if not warned[0] and math.isfinite(hours) and hours > WARN_HOURS:
+        warned[0] = True
+        print(f"hmepol: warning: stage {stage} of {spec.name} needs about {hours:.1f} h on this "
+              "machine (estimated from its first epochs)", file=sys.stderr, flush=True)  # fmt: skip
+    return line
+
+
+def _run_sweeps(spec: Spec, stage: int, todo: list[tuple[Arm, list[int]]],
+                warned: list[bool]) -> None:  # fmt: skip
+    """Run the sweeps in ``todo`` (those whose seeds are all complete are skipped),
+    ``parallel_sweeps`` at a time, each its own process. A signal (SIGTERM, Ctrl-C) reaches
+    every running sweep, which checkpoints and stops; a sweep that fails stops the others the
+    same way, and the study exits with its code."""
+    todo = [(arm, seeds) for arm, seeds in todo
+            if not all(s in (runs := arm_runs(arm, spec.epochs)) and runs[s].complete
+                       for s in seeds)]  # fmt: skip
+    running: list[subprocess.Popen] = []
+    failed = 0
+
+    def forward(signum, frame):  # noqa: ANN001, ARG001
+        for process in running:
+            if process.poll() is None:
+                process.send_signal(signum)
+
+    previous = signal.signal(signal.SIGTERM, forward)
+    last, shown = "", time.monotonic()
+    try:
+        while todo or running:
+            while todo and len(running) < spec.parallel_sweeps and not failed:
+                arm, seeds = todo.pop(0)
+                running.append(subprocess.Popen(sweep_command(spec, arm, seeds)))
+            try:
+                time.sleep(min(1.0, POLL_SECONDS))
+            except KeyboardInterrupt:  # the terminal's Ctrl-C reached every sweep too
+                for process in running:
+                    process.wait()
+                raise SystemExit(130) from None
+            for process in [p for p in running if p.poll() is not None]:
+                running.remove(process)
+                if process.returncode and not failed:
+                    failed = process.returncode
+                    todo = []
+                    forward(signal.SIGTERM, None)
+            if time.monotonic() - shown >= POLL_SECONDS:
+                last, shown = _progress(spec, stage, last, warned), time.monotonic()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if failed:
+        raise SystemExit(failed)
 
 
 def run_study(spec: Spec) -> Status:
@@ -460,25 +594,8 @@ def run_study(spec: Spec) -> Status:
             print(f"hmepol: warning: stage {stage} of {spec.name} needs about {hours:.1f} h on "
                   "this machine", file=sys.stderr, flush=True)  # fmt: skip
         warned = [math.isfinite(hours) and hours > WARN_HOURS]
-        for arm in spec.arms.values():
-            runs = arm_runs(arm, spec.epochs)
-            if all(s in runs and runs[s].complete for s in seeds):
-                continue
-            process = subprocess.Popen(sweep_command(spec, arm, seeds))
-            previous = signal.getsignal(signal.SIGTERM)
-
-            def forward(signum, frame, process=process):  # noqa: ANN001, ARG001
-                process.send_signal(signum)
-
-            signal.signal(signal.SIGTERM, forward)
-            try:
-                code = _watch(spec, stage, process, warned)
-            except KeyboardInterrupt:
-                code = process.wait()
-            finally:
-                signal.signal(signal.SIGTERM, previous)
-            if code:
-                raise SystemExit(code)
+        todo = [(arm, seeds) for arm in spec.arms.values() for seeds in sweep_seeds(spec, stage)]
+        _run_sweeps(spec, stage, todo, warned)
         st = status(spec)
         if st.complete_stages < stage:
             raise UserError(f"stage {stage} is not complete after its sweeps; run the study "
@@ -497,11 +614,20 @@ def main(args: list[str]) -> None:
     )
     parser.add_argument("spec", help="a study spec (YAML; presets in conf/study/)")
     parser.add_argument("--status", action="store_true", help="where the study stands; no training")
+    parser.add_argument("--amend", metavar="REASON",
+                        help="record the spec as now written and this commit as the study's "
+                        "registration for what it has not yet trained; only how runs are "
+                        "executed may change (launcher, parallel_sweeps, seeds_per_sweep, "
+                        "threads). REASON: why, and why the numbers do not change")  # fmt: skip
     ns = parser.parse_args(args)
     spec = load_spec(ns.spec)
     if ns.status:
         for line in status_lines(status(spec)):
             print(line)
+        return
+    if ns.amend is not None:
+        path = amend(spec, code_commit(), ns.amend)
+        print(f"hmepol study: amendment recorded in {path}; run the study from this commit")
         return
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
     run_study(spec)

@@ -254,3 +254,107 @@ def test_a_study_does_not_train_its_kept_stages(tmp_path):
 def test_kept_stages_out_of_range_or_with_posthoc_are_refused(tmp_path, extra, word):
     with pytest.raises(UserError, match=re.escape(word)):
         load_spec(spec_file(tmp_path, n=2, stages=3, **extra))
+
+
+def test_sweeps_split_the_stage_and_share_the_time(tmp_path):
+    """Seeds per sweep and sweeps at a time: the stage's hours by hand."""
+    from hmepol_cli.study import sweep_seeds
+
+    spec = load_spec(spec_file(tmp_path, n=4, stages=2, seeds_per_sweep=3, parallel_sweeps=2))
+    assert sweep_seeds(spec, 2) == [[4, 5, 6], [7]]
+    for s in range(4):  # stage 1 done at 2 s an epoch
+        for arm in "ab":
+            make_run(spec.arms[arm].folder, s, 1.0, 5)
+    make_run(spec.arms["a"].folder, 4, 1.0, 3)  # 2 epochs left; seeds 5, 6, 7 of a: 5 each
+    st = status(spec)
+    # sweeps (a population each: its slowest member): a [4,5,6] 5 x 2 s, a [7] 5 x 2, b [4,5,6]
+    # 5 x 2, b [7] 5 x 2 = 10 s each; two at a time: max(10, 40 / 2) = 20 s
+    assert st.stage_hours(2) == pytest.approx(20 / 3600)
+    one = load_spec(spec_file(tmp_path, n=4, stages=2))  # one sweep per arm, one at a time
+    assert status(one).stage_hours(2) == pytest.approx(20 / 3600)
+    wide = load_spec(spec_file(tmp_path, n=4, stages=2, seeds_per_sweep=1, parallel_sweeps=8))
+    assert status(wide).stage_hours(2) == pytest.approx(10 / 3600)  # the longest sweep
+
+
+@pytest.mark.parametrize("extra, word", [
+    ({"parallel_sweeps": 0}, "parallel_sweeps=0"),
+    ({"parallel_sweeps": "2"}, "parallel_sweeps='2'"),
+    ({"seeds_per_sweep": 3}, "seeds_per_sweep=3"), ({"seeds_per_sweep": 0}, "seeds_per_sweep=0"),
+])  # fmt: skip
+def test_bad_sweep_layouts_are_refused(tmp_path, extra, word):
+    with pytest.raises(UserError, match=re.escape(word)):
+        load_spec(spec_file(tmp_path, n=2, stages=2, **extra))
+
+
+def test_an_amendment_changes_only_how_runs_are_executed(tmp_path):
+    from hmepol_cli.study import amend
+
+    path = spec_file(tmp_path, n=2, stages=2, overrides=["wind=0.4", "threads=2"])
+    registered = path.read_text()
+    with pytest.raises(UserError, match="no pre-registration to amend"):
+        amend(load_spec(path), "c0ffee", "why")
+    preregister(load_spec(path), "c0ffee")
+    spec = load_spec(path)
+    make_run(spec.arms["a"].folder, 0, 1.0, 3)
+    with pytest.raises(UserError, match="nothing to amend"):
+        amend(spec, "c0ffee", "why")
+    with pytest.raises(UserError, match="needs its reason"):
+        amend(spec, "beef", "  ")
+    # the question may not change: alpha, an arm's overrides, a non-execution override
+    raw = yaml.safe_load(registered)
+    for key, value, named in [
+        ("alpha", 0.1, "alpha"), ("overrides", ["wind=0.3", "threads=1"], "overrides"),
+        ("arms", {**raw["arms"], "a": {"preset": "demo", "overrides": ["algo.lr=1"]}}, "arms"),
+    ]:  # fmt: skip
+        path.write_text(yaml.safe_dump({**raw, key: value}))
+        with pytest.raises(UserError, match=f"also changes {named}"):
+            amend(load_spec(path), "beef", "why")
+    # how the runs execute may: threads, the sweep layout, the launcher, the commit
+    path.write_text(yaml.safe_dump({**raw, "overrides": ["wind=0.4", "threads=1"],
+                                    "seeds_per_sweep": 1, "parallel_sweeps": 2}))  # fmt: skip
+    written = amend(load_spec(path), "beef", "two sweeps of one thread; numbers unchanged")
+    content = yaml.safe_load(written.read_text())
+    assert content["spec"] == registered and content["commit"] == "c0ffee"  # kept as written
+    (amendment,) = content["amendments"]
+    assert amendment["commit"] == "beef" and amendment["spec"] == path.read_text()
+    assert amendment["epochs_done_before"] == {"a": {0: 3}, "b": {}}
+    preregister(load_spec(path), "beef")  # the amendment is now in force
+    with pytest.raises(UserError, match="at commit c0ffee, not beef"):
+        preregister(load_spec(path), "c0ffee")
+    path.write_text(registered)
+    with pytest.raises(UserError, match="changed since its pre-registration"):
+        preregister(load_spec(path), "beef")  # the old spec is no longer the one in force
+    path.write_text(amendment["spec"])
+    lines = status_lines(status(load_spec(path)))
+    assert any("amended" in line and "at commit beef" in line and "numbers unchanged" in line
+               for line in lines)  # fmt: skip
+
+
+@pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
+def test_sweeps_side_by_side_give_the_runs_of_one_sweep_per_arm(tmp_path):
+    """The same study run as one population per arm, one after the other, and as one seed per
+    sweep, two sweeps at a time: every run's epochs.csv is the same but for its timings."""
+    tables = {}
+    for name, layout in [("one", {}), ("side", {"seeds_per_sweep": 1, "parallel_sweeps": 2})]:
+        spec = {
+            "folder": str(tmp_path / name), "launcher": "population", "seeds_per_stage": 2,
+            "stages": 1, "alpha": 0.05, "epochs": 3, "metric": {"columns": ["entropy"]},
+            "overrides": [*TINY, "algo.trajectories=20", "algo.horizon=60", "threads=1"],
+            "arms": {"mepol": {"preset": "demo", "overrides": ["algo=mepol"]},
+                     "fast": {"preset": "demo", "overrides": ["algo=mepol", "algo.lr=1e-2"]}},
+            **layout,
+        }  # fmt: skip
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(yaml.safe_dump(spec))
+        out = subprocess.run([sys.executable, "-m", "hmepol_cli", "study", str(path)],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+        found = sorted((tmp_path / name).glob("*/*/epochs.csv"))
+        assert len(found) == 4
+        tables[name] = {t.relative_to(tmp_path / name): pd.read_csv(t) for t in found}
+    assert tables["one"].keys() == tables["side"].keys()
+    for key, table in tables["one"].items():
+        timing = [c for c in table.columns if c.endswith("seconds") or c == "wall_time"]
+        assert len(table) == 3
+        pd.testing.assert_frame_equal(table.drop(columns=timing),
+                                      tables["side"][key].drop(columns=timing))  # fmt: skip
