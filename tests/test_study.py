@@ -358,3 +358,21 @@ def test_sweeps_side_by_side_give_the_runs_of_one_sweep_per_arm(tmp_path):
         assert len(table) == 3
         pd.testing.assert_frame_equal(table.drop(columns=timing),
                                       tables["side"][key].drop(columns=timing))  # fmt: skip
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "conf" / "study").glob("*.yaml")),
+                         ids=lambda p: p.stem)  # fmt: skip
+def test_every_study_preset_composes_each_arm_as_its_sweep_will(path):
+    """A pre-registered spec must not fail at its first run: each arm's job, with the spec's
+    overrides and one seed of its first stage to train, composes and passes the command's
+    check (keys and values)."""
+    from hmepol_cli.checks import check_train
+
+    spec = load_spec(path)
+    seed = spec.kept_stages * spec.n
+    for arm in spec.arms.values():
+        command = sweep_command(spec, arm, [seed])
+        overrides = [o for o in command[command.index("sweep") + 1 :]
+                     if not o.startswith("hydra")]  # fmt: skip
+        cfg = check_train(overrides)
+        assert cfg.epochs == spec.epochs and cfg.seed == seed
