@@ -7,7 +7,7 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
 DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_fraction=0.25
 
-.PHONY: install install-demo demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor clean
+.PHONY: install install-demo demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor finetune-continuation clean
 
 PIP_INSTALL = $(PYTHON) -m pip install --quiet
 
@@ -116,6 +116,23 @@ reproduce-corridor:
 # Thesis Fig. 5.9 on a CPU: TRPO on five random targets of the counterclockwise corridor, from
 # the wind-0.4 policies of seeds 0 and 1 of each algorithm, and from scratch.
 FINETUNE ?= epochs=50 episodes=10 horizon=400 targets=5 config=1 fisher_fraction=0.25 progress=false
+# The pre-registered fine-tuning (docs/results/finetune_continuation/PREREGISTRATION.md): from
+# the corridor continuation's final policies (seeds 8-11, and 12-15 when they exist), from a
+# worktree of the pre-registration's commit.
+CONTINUATION_DIR ?= docs/results/decisive
+CONTINUATION_SEEDS ?= 8 9 10 11
+FINETUNE_OUT ?= docs/results/finetune_continuation
+FINETUNE_BOTH ?= epochs=50 episodes=10 horizon=400 targets=5 config=null fisher_fraction=0.25 progress=false threads=1
+finetune-continuation:
+	for s in $(CONTINUATION_SEEDS); do \
+	  for a in mepol exact; do \
+	    run=$$(ls -d $(CONTINUATION_DIR)/$$a/*_seed-$$s*/ | head -1); \
+	    test -f "$$run/policy.pt" || { echo "no final policy in $$run"; exit 1; }; \
+	    hmepol finetune init=$$run seed=$$s $(FINETUNE_BOTH) output_dir=$(FINETUNE_OUT)/$$a-seed$$s || exit 1; \
+	  done; \
+	  hmepol finetune init=none env=corridor wind=0.4 seed=$$s $(FINETUNE_BOTH) output_dir=$(FINETUNE_OUT)/scratch-seed$$s || exit 1; \
+	done
+
 finetune-corridor:
 	for s in 0 1; do \
 	  for a in mepol hmepol; do \
