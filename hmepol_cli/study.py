@@ -527,9 +527,12 @@ def _run_sweeps(spec: Spec, stage: int, todo: list[tuple[Arm, list[int]]],
     ``parallel_sweeps`` at a time, each its own process. A signal (SIGTERM, Ctrl-C) reaches
     every running sweep, which checkpoints and stops; a sweep that fails stops the others the
     same way, and the study exits with its code."""
-    todo = [(arm, seeds) for arm, seeds in todo
-            if not all(s in (runs := arm_runs(arm, spec.epochs)) and runs[s].complete
-                       for s in seeds)]  # fmt: skip
+
+    def complete(arm: Arm, seeds: list[int]) -> bool:
+        runs = arm_runs(arm, spec.epochs)
+        return all(s in runs and runs[s].complete for s in seeds)
+
+    todo = [(arm, seeds) for arm, seeds in todo if not complete(arm, seeds)]
     running: list[subprocess.Popen] = []
     failed = 0
 
@@ -547,7 +550,8 @@ def _run_sweeps(spec: Spec, stage: int, todo: list[tuple[Arm, list[int]]],
                 running.append(subprocess.Popen(sweep_command(spec, arm, seeds)))
             try:
                 time.sleep(min(1.0, POLL_SECONDS))
-            except KeyboardInterrupt:  # the terminal's Ctrl-C reached every sweep too
+            except KeyboardInterrupt:  # passed on (a sweep ignores a second one)
+                forward(signal.SIGINT, None)
                 for process in running:
                     process.wait()
                 raise SystemExit(130) from None

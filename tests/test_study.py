@@ -376,3 +376,53 @@ def test_every_study_preset_composes_each_arm_as_its_sweep_will(path):
                      if not o.startswith("hydra")]  # fmt: skip
         cfg = check_train(overrides)
         assert cfg.epochs == spec.epochs and cfg.seed == seed
+
+
+def test_sweeps_run_at_most_parallel_sweeps_at_once_and_a_failure_stops_the_others(
+    tmp_path, monkeypatch
+):
+    """The sweeps replaced by small scripts that log when they start and end: never more than
+    parallel_sweeps at once, every sweep run once; a sweep that fails ends the others by
+    SIGTERM and the study exits with its code, starting nothing more."""
+    import hmepol_cli.study as study
+
+    spec = load_spec(spec_file(tmp_path, n=4, stages=1, seeds_per_sweep=1, parallel_sweeps=2))
+    log = tmp_path / "log.txt"
+    fail = {"seeds": "", "others": 0.5}
+    script = (
+        "import signal, sys, time\n"
+        "log, name, code = sys.argv[1], sys.argv[2], int(sys.argv[3])\n"
+        "def stop(*_):\n"
+        "    open(log, 'a').write(f'{time.monotonic()} stopped {name}\\n'); sys.exit(143)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "open(log, 'a').write(f'{time.monotonic()} start {name}\\n')\n"
+        "time.sleep(float(sys.argv[4]))\n"
+        "open(log, 'a').write(f'{time.monotonic()} end {name}\\n'); sys.exit(code)\n"
+    )
+
+    def fake(spec, arm, seeds):  # noqa: ANN001, ANN202
+        name = f"{arm.name}{seeds[0]}"
+        code = 3 if name == fail["seeds"] else 0
+        seconds = 0.3 if code else fail["others"]
+        return [sys.executable, "-c", script, str(log), name, str(code), str(seconds)]
+
+    monkeypatch.setattr(study, "sweep_command", fake)
+    todo = [(arm, seeds) for arm in spec.arms.values() for seeds in study.sweep_seeds(spec, 1)]
+    study._run_sweeps(spec, 1, todo, [False])
+    events = [line.split() for line in log.read_text().splitlines()]
+    assert sorted(e[2] for e in events if e[1] == "start") == sorted(
+        f"{a}{s}" for a in "ab" for s in range(4))  # fmt: skip
+    level, most = 0, 0
+    for _, what, _ in sorted(events, key=lambda e: float(e[0])):
+        level += 1 if what == "start" else -1
+        most = max(most, level)
+    assert most == 2
+
+    log.unlink()
+    fail.update(seeds="a1", others=60.0)  # the second sweep fails while the first runs
+    with pytest.raises(SystemExit) as stopped:
+        study._run_sweeps(spec, 1, todo, [False])
+    assert stopped.value.code == 3
+    events = [line.split() for line in log.read_text().splitlines()]
+    assert [e[1:] for e in events if e[1] != "start"] == [["end", "a1"], ["stopped", "a0"]]
+    assert {e[2] for e in events if e[1] == "start"} == {"a0", "a1"}  # nothing more started
