@@ -10,6 +10,8 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from hmepol_cli.errors import RunDirError, TableError
 from hmepol_cli.run import EPOCHS_CSV, RunTables, read_table
@@ -97,3 +99,58 @@ def test_a_column_outside_numeric_may_hold_text(tmp_path):
     frame = read_table(path, ("epoch",), NUMERIC.pattern.replace("(_c\\d+)?", ""))
     assert frame["entropy_c0"].tolist() == ["0.0", "n/a", "0.2"]
     assert issubclass(TableError, RunDirError)  # a user's error: one line, exit 2
+
+
+def _inexact(monkeypatch):
+    """Make pandas parse CSV floats one double up, as some releases' parsers do (pandas 3.0.6
+    read a third of a sample of to_csv's doubles as a neighbouring double)."""
+    read_csv, to_numeric = pd.read_csv, pd.to_numeric
+
+    def up(frame):
+        for column in frame.columns:
+            if frame[column].dtype.kind == "f":
+                frame[column] = np.nextafter(frame[column].to_numpy(), np.inf)
+        return frame
+
+    def inexact_read_csv(*args, **kwargs):
+        frame = read_csv(*args, **kwargs)
+        return frame if kwargs.get("dtype") is str else up(frame)
+
+    def inexact_to_numeric(*args, **kwargs):
+        numbers = to_numeric(*args, **kwargs)
+        if getattr(numbers, "dtype", None) is not None and numbers.dtype.kind == "f":
+            numbers = pd.Series(np.nextafter(numbers.to_numpy(), np.inf), index=numbers.index)
+        return numbers
+
+    monkeypatch.setattr(pd, "read_csv", inexact_read_csv)
+    monkeypatch.setattr(pd, "to_numeric", inexact_to_numeric)
+
+
+FLOATS = st.floats(allow_nan=True, allow_infinity=False, width=64)
+
+
+@settings(max_examples=60, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+@given(values=st.lists(st.tuples(FLOATS, FLOATS), min_size=1, max_size=6), inexact=st.booleans())
+def test_rows_read_back_are_the_rows_written_whatever_the_csv_parser_rounds(
+    tmp_path_factory, monkeypatch, values, inexact
+):
+    """Any doubles a run writes come back bit for bit, to the resume's digest check and to the
+    report's reader, even from a pandas whose CSV parser rounds to a neighbouring double."""
+    run = tmp_path_factory.mktemp("run")
+    tables = RunTables(run, (EPOCHS_CSV,))
+    for e, (a, b) in enumerate(values):
+        tables.append(epochs=pd.DataFrame([{"epoch": e, "entropy": a, "kl": b}]))
+    digests = {EPOCHS_CSV: list(tables.digests[EPOCHS_CSV])}
+    with monkeypatch.context() as patch:
+        if inexact:
+            _inexact(patch)
+        again = RunTables(run, (EPOCHS_CSV,))
+        again.verify(len(values), digests)  # refuses (RunDirError) if a row came back changed
+        frame = read_table(run / EPOCHS_CSV, ("epoch",), NUMERIC)
+    for column, k in (("entropy", 0), ("kl", 1)):
+        want = np.array([v[k] for v in values], dtype=np.float64)
+        for got in (again[EPOCHS_CSV][column].to_numpy(np.float64), frame[column].to_numpy()):
+            assert np.array_equal(np.isnan(got), np.isnan(want))
+            bits = lambda x: x[~np.isnan(x)].view(np.int64)  # noqa: E731
+            assert np.array_equal(bits(got), bits(want))  # -0.0 and 0.0 told apart

@@ -50,6 +50,23 @@ def row_digest(rows: pd.DataFrame) -> str:
 LINE = "_line"  # the file line a row was read from (1 = the header), kept out of the files
 
 
+def _float(text: str) -> float:
+    return float(text) if text else math.nan
+
+
+def exact_floats(frame: pd.DataFrame, path: Path, skiprows: Any = None) -> None:
+    """Replace ``frame``'s float columns (read from ``path``) by the exact values their text
+    writes: Python's correctly rounded parse of each field. Some pandas releases parse a CSV's
+    floats to a neighbouring double (pandas 3.0.6 did so for a third of a sample of doubles
+    written by to_csv), which would make rows read back differ from the rows written."""
+    floats = [c for c in frame.columns if frame[c].dtype.kind == "f"]
+    if not floats or not len(frame):
+        return
+    text = pd.read_csv(path, skiprows=skiprows, usecols=floats, dtype=str, keep_default_na=False)
+    for column in floats:
+        frame[column] = np.fromiter(map(_float, text[column]), dtype=np.float64, count=len(text))
+
+
 class RunTables:
     """The CSV files of a run directory (training: epochs.csv, batches.csv and, with
     diagnostics, steps.csv; fine-tuning: finetune.csv), rewritten atomically whenever rows are
@@ -97,7 +114,9 @@ class RunTables:
             else:
                 good.append(number)
         keep = set(good)
-        frame = pd.read_csv(path, skiprows=lambda i: i > 0 and i + 1 not in keep)
+        skip = lambda i: i > 0 and i + 1 not in keep  # noqa: E731
+        frame = pd.read_csv(path, skiprows=skip)
+        exact_floats(frame, path, skip)
         frame[LINE] = good
         return frame
 
@@ -250,6 +269,10 @@ def read_table(
         numbers = pd.to_numeric(fields.mask(blank), errors="coerce")
         unparsed = numbers.isna() & ~blank
         if not unparsed.any():
+            if numbers.dtype.kind == "f":  # each number exactly as written (see exact_floats)
+                numbers = pd.Series(np.fromiter(
+                    (math.nan if b else float(f) for f, b in zip(fields, blank, strict=True)),
+                    dtype=np.float64, count=len(fields)), index=fields.index)  # fmt: skip
             frame[column] = numbers
         elif numeric is not None and numeric.fullmatch(column):
             line = unparsed.idxmax()
