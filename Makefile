@@ -7,7 +7,7 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
 DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_fraction=0.25
 
-.PHONY: install install-demo demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor finetune-continuation clean
+.PHONY: install install-demo demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor finetune-continuation studies report-wind-sweep clean
 
 PIP_INSTALL = $(PYTHON) -m pip install --quiet
 
@@ -116,6 +116,14 @@ reproduce-corridor:
 # Thesis Fig. 5.9 on a CPU: TRPO on five random targets of the counterclockwise corridor, from
 # the wind-0.4 policies of seeds 0 and 1 of each algorithm, and from scratch.
 FINETUNE ?= epochs=50 episodes=10 horizon=400 targets=5 config=1 fisher_fraction=0.25 progress=false
+# The chapter 5 studies (docs/studies.md): where each stands (trains nothing), and the wind
+# sweep's report with the decisive experiment's wind 0.4 beside it (Fig. 5.10, A.2);
+# UNFINISHED=--unfinished draws it while runs are still going.
+studies:
+	for s in conf/study/*.yaml; do hmepol study $$s --status || exit 1; echo; done
+report-wind-sweep:
+	hmepol report docs/results/wind_sweep docs/results/decisive/mepol docs/results/decisive/exact $(UNFINISHED) --out docs/results/wind_sweep/report
+
 # The pre-registered fine-tuning (docs/results/finetune_continuation/PREREGISTRATION.md): from
 # the corridor continuation's final policies (seeds 8-11, and 12-15 when they exist), from a
 # worktree of the pre-registration's commit.
