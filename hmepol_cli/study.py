@@ -38,7 +38,8 @@ from hmepol_cli.report.comparisons import (
 PREREGISTRATION = "preregistration.yaml"
 LAUNCHERS = ("local", "population", "population_local", "slurm", "population_slurm", "basic")
 WARN_HOURS = 3.0  # a stage estimated to need more than this on this machine is announced
-POLL_SECONDS = 30.0
+POLL_SECONDS = 30.0  # between progress lines
+SWEEP_POLL_SECONDS = 1.0  # between looks at the running sweeps
 KEYS = {"name", "folder", "posthoc", "kept_stages", "launcher", "seeds_per_stage", "stages",
         "alpha", "beta",
         "permutations", "adastop_seed", "epochs", "metric", "half_width", "overrides", "arms",
@@ -549,7 +550,7 @@ def _run_sweeps(spec: Spec, stage: int, todo: list[tuple[Arm, list[int]]],
                 arm, seeds = todo.pop(0)
                 running.append(subprocess.Popen(sweep_command(spec, arm, seeds)))
             try:
-                time.sleep(min(1.0, POLL_SECONDS))
+                time.sleep(min(SWEEP_POLL_SECONDS, POLL_SECONDS))
             except KeyboardInterrupt:  # passed on (a sweep ignores a second one)
                 forward(signal.SIGINT, None)
                 for process in running:

@@ -388,7 +388,7 @@ def test_sweeps_run_at_most_parallel_sweeps_at_once_and_a_failure_stops_the_othe
 
     spec = load_spec(spec_file(tmp_path, n=4, stages=1, seeds_per_sweep=1, parallel_sweeps=2))
     log = tmp_path / "log.txt"
-    fail = {"seeds": "", "others": 0.5}
+    fail = {"seeds": "", "others": 1.0}
     script = (
         "import signal, sys, time\n"
         "log, name, code = sys.argv[1], sys.argv[2], int(sys.argv[3])\n"
@@ -407,6 +407,7 @@ def test_sweeps_run_at_most_parallel_sweeps_at_once_and_a_failure_stops_the_othe
         return [sys.executable, "-c", script, str(log), name, str(code), str(seconds)]
 
     monkeypatch.setattr(study, "sweep_command", fake)
+    monkeypatch.setattr(study, "SWEEP_POLL_SECONDS", 0.05)
     todo = [(arm, seeds) for arm in spec.arms.values() for seeds in study.sweep_seeds(spec, 1)]
     study._run_sweeps(spec, 1, todo, [False])
     events = [line.split() for line in log.read_text().splitlines()]
