@@ -34,6 +34,7 @@ from hmepol_cli.report.comparisons import (
     paired,
     window_metric,
 )
+from hmepol_cli.run.io import atomic_write_text
 
 PREREGISTRATION = "preregistration.yaml"
 LAUNCHERS = ("local", "population", "population_local", "slurm", "population_slurm", "basic")
@@ -418,9 +419,7 @@ def _registration(path: Path) -> tuple[dict, dict]:
 
 def _write_yaml(path: Path, content: dict) -> None:
     """Replace ``path`` whole (a crash leaves the old file or the new one, never half)."""
-    part = path.with_name(path.name + ".part")
-    part.write_text(yaml.safe_dump(content, sort_keys=False, width=100))
-    os.replace(part, path)
+    atomic_write_text(path, yaml.safe_dump(content, sort_keys=False, width=100))
 
 
 def preregister(spec: Spec, commit: str) -> Path:

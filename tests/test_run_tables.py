@@ -109,7 +109,8 @@ def _inexact(monkeypatch):
     def up(frame):
         for column in frame.columns:
             if frame[column].dtype.kind == "f":
-                frame[column] = np.nextafter(frame[column].to_numpy(), np.inf)
+                with np.errstate(over="ignore"):  # the largest double goes up to inf
+                    frame[column] = np.nextafter(frame[column].to_numpy(), np.inf)
         return frame
 
     def inexact_read_csv(*args, **kwargs):
@@ -119,7 +120,9 @@ def _inexact(monkeypatch):
     def inexact_to_numeric(*args, **kwargs):
         numbers = to_numeric(*args, **kwargs)
         if getattr(numbers, "dtype", None) is not None and numbers.dtype.kind == "f":
-            numbers = pd.Series(np.nextafter(numbers.to_numpy(), np.inf), index=numbers.index)
+            with np.errstate(over="ignore"):
+                up_one = np.nextafter(numbers.to_numpy(), np.inf)
+            numbers = pd.Series(up_one, index=numbers.index)
         return numbers
 
     monkeypatch.setattr(pd, "read_csv", inexact_read_csv)

@@ -270,9 +270,8 @@ def read_table(
         unparsed = numbers.isna() & ~blank
         if not unparsed.any():
             if numbers.dtype.kind == "f":  # each number exactly as written (see exact_floats)
-                numbers = pd.Series(np.fromiter(
-                    (math.nan if b else float(f) for f, b in zip(fields, blank, strict=True)),
-                    dtype=np.float64, count=len(fields)), index=fields.index)  # fmt: skip
+                exact = map(_float, fields.where(~blank, ""))
+                numbers = pd.Series(np.fromiter(exact, np.float64, len(fields)), fields.index)
             frame[column] = numbers
         elif numeric is not None and numeric.fullmatch(column):
             line = unparsed.idxmax()
