@@ -278,16 +278,35 @@ class Status:
             return True
         return self.complete_stages >= self.spec.stages
 
+    def paces(self) -> dict[str, tuple[float, str]]:
+        """Each arm's pace (seconds an epoch: the median of its runs') and the arm it was
+        measured on. An arm with no run yet takes a sibling's: an arm of the same preset whose
+        overrides set the same keys (another wind, say), the first with a pace; NaN if none."""
+        own = {}
+        for name, runs in self.runs.items():
+            paces = [r.pace for r in runs.values() if math.isfinite(r.pace)]
+            own[name] = float(pd.Series(paces).median()) if paces else math.nan
+        out = {}
+        for name, arm in self.spec.arms.items():
+            siblings = [name] + [
+                other for other, o in self.spec.arms.items()
+                if o.preset == arm.preset and _keys(o.overrides) == _keys(arm.overrides)
+            ]  # fmt: skip
+            source = next((a for a in siblings if math.isfinite(own[a])), name)
+            out[name] = (own[source], source)
+        return out
+
     def stage_hours(self, stage: int, launcher: str | None = None) -> float:
         """Hours the stage's unfinished epochs need on this machine, at each arm's pace (a
-        population trains its members together: the slowest member; otherwise one after the
-        other), its sweeps ``parallel_sweeps`` at a time (the longer of the longest sweep and
-        their sum shared out); NaN while no run of the arm has a pace."""
+        sibling's while it has none: :meth:`paces`; a population trains its members together:
+        the slowest member; otherwise one after the other), its sweeps ``parallel_sweeps`` at a
+        time (the longer of the longest sweep and their sum shared out); NaN while an arm with
+        epochs left has no pace of its own or a sibling's."""
         population = (launcher or self.spec.launcher).startswith("population")
+        paces = self.paces()
         sweeps = []
-        for runs in self.runs.values():
-            paces = [r.pace for r in runs.values() if math.isfinite(r.pace)]
-            pace = float(pd.Series(paces).median()) if paces else math.nan
+        for name, runs in self.runs.items():
+            pace = paces[name][0]
             for seeds in sweep_seeds(self.spec, stage):
                 left = [max(0, self.spec.epochs - (runs[s].done if s in runs else 0))
                         for s in seeds]  # fmt: skip
@@ -299,6 +318,19 @@ class Status:
         if not sweeps:
             return 0.0
         return max(max(sweeps), sum(sweeps) / self.spec.parallel_sweeps) / 3600
+
+    def borrowed_paces(self) -> str:
+        """Which arms' hours are at a sibling's pace: '' when none."""
+        borrowed = [f"{name} at {source}'s" for name, (pace, source) in self.paces().items()
+                    if source != name and math.isfinite(pace)]  # fmt: skip
+        if not borrowed:
+            return ""
+        return f" (arms with no run yet at a sibling's pace: {', '.join(borrowed)})"
+
+
+def _keys(overrides: tuple[str, ...]) -> tuple[str, ...]:
+    """The keys an arm's overrides set, in order: ``wind=0.05`` -> ``wind``."""
+    return tuple(o.split("=", 1)[0] for o in overrides)
 
 
 def status(spec: Spec) -> Status:
@@ -351,7 +383,8 @@ def status_lines(st: Status) -> list[str]:
         stage = st.complete_stages + 1
         hours = st.stage_hours(stage)
         left = "unknown until its runs have an epoch" if math.isnan(hours) else f"{hours:.1f} h"
-        lines.append(f"stage {stage} still needs {left} on this machine")
+        borrowed = "" if math.isnan(hours) else st.borrowed_paces()
+        lines.append(f"stage {stage} still needs {left} on this machine{borrowed}")
     for (b, a), d in st.differences.items():
         if d.n:
             lines.append(f"{b} - {a}: {d.text()}; {d.answer(b, a)}")

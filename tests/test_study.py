@@ -427,3 +427,24 @@ def test_sweeps_run_at_most_parallel_sweeps_at_once_and_a_failure_stops_the_othe
     events = [line.split() for line in log.read_text().splitlines()]
     assert [e[1:] for e in events if e[1] != "start"] == [["end", "a1"], ["stopped", "a0"]]
     assert {e[2] for e in events if e[1] == "start"} == {"a0", "a1"}  # nothing more started
+
+
+def test_an_arm_with_no_run_yet_is_timed_at_a_sibling_arms_pace(tmp_path):
+    """A sibling: the same preset, overrides setting the same keys (another wind); an arm of
+    another algorithm is not one, so the stage's hours stay unknown until it has a pace."""
+    arms = {"a": {"preset": "demo", "overrides": ["wind=0.1"]},
+            "a2": {"preset": "demo", "overrides": ["wind=0.2"]},
+            "b": {"preset": "demo", "overrides": ["algo=hmepol"]}}  # fmt: skip
+    spec = load_spec(spec_file(tmp_path, n=2, stages=2, arms=arms, comparisons=[["b", "a"]]))
+    for s in range(2):
+        make_run(spec.arms["a"].folder, s, 1.0, 5)  # a's stage 1 done, 2 s an epoch
+    st = status(spec)
+    assert st.paces()["a2"] == (2.0, "a") and math.isnan(st.paces()["b"][0])
+    assert math.isnan(st.stage_hours(1))
+    assert any("still needs unknown" in line for line in status_lines(st))
+    make_run(spec.arms["b"].folder, 0, 1.0, 1)  # b's first epoch: its own pace, 2 s
+    st = status(spec)
+    # a population per arm, one at a time: a2 5 epochs x 2 s, b max(4, 5) x 2 s
+    assert st.stage_hours(1) == pytest.approx(20 / 3600)
+    line = next(line for line in status_lines(st) if "still needs" in line)
+    assert line.endswith("(arms with no run yet at a sibling's pace: a2 at a's)")
