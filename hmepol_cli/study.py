@@ -288,11 +288,9 @@ class Status:
             own[name] = float(pd.Series(paces).median()) if paces else math.nan
         out = {}
         for name, arm in self.spec.arms.items():
-            siblings = [name] + [
-                other for other, o in self.spec.arms.items()
-                if o.preset == arm.preset and _keys(o.overrides) == _keys(arm.overrides)
-            ]  # fmt: skip
-            source = next((a for a in siblings if math.isfinite(own[a])), name)
+            siblings = [other for other, o in self.spec.arms.items() if other != name
+                        and o.preset == arm.preset and _keys(o.overrides) == _keys(arm.overrides)]
+            source = next((a for a in [name, *siblings] if math.isfinite(own[a])), name)
             out[name] = (own[source], source)
         return out
 
