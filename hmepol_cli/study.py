@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 
 import pandas as pd
@@ -35,6 +36,7 @@ from hmepol_cli.report.comparisons import (
     window_metric,
 )
 from hmepol_cli.run.io import atomic_write_text
+from hmepol_cli.run.layout import COMMANDS
 
 PREREGISTRATION = "preregistration.yaml"
 LAUNCHERS = ("local", "population", "population_local", "slurm", "population_slurm", "basic")
@@ -252,6 +254,17 @@ def arm_runs(arm: Arm, epochs: int) -> dict[int, RunState]:
     return out
 
 
+def first_launch(run: Path) -> datetime | None:
+    """When a run directory was first launched: the time on its commands.log's first line,
+    written before the run's first row (None without a log, or without a time zone)."""
+    try:
+        stamp = (run / COMMANDS).read_text().split("\n", 1)[0].split(" ", 1)[0]
+        when = datetime.fromisoformat(stamp)
+    except (OSError, ValueError):
+        return None
+    return when if when.tzinfo is not None else None
+
+
 def stage_seeds(spec: Spec, stage: int) -> list[int]:
     """The seeds of stage ``stage`` (1-based): n per stage, consecutive from 0."""
     return list(range((stage - 1) * spec.n, stage * spec.n))
@@ -288,8 +301,13 @@ class Status:
             own[name] = float(pd.Series(paces).median()) if paces else math.nan
         out = {}
         for name, arm in self.spec.arms.items():
-            siblings = [other for other, o in self.spec.arms.items() if other != name
-                        and o.preset == arm.preset and _keys(o.overrides) == _keys(arm.overrides)]
+            siblings = [
+                other
+                for other, o in self.spec.arms.items()
+                if other != name
+                and o.preset == arm.preset
+                and _keys(o.overrides) == _keys(arm.overrides)
+            ]
             source = next((a for a in [name, *siblings] if math.isfinite(own[a])), name)
             out[name] = (own[source], source)
         return out
@@ -360,6 +378,46 @@ def status(spec: Spec) -> Status:
     return Status(spec, runs, complete, values, decisions, differences)
 
 
+def registration_order(st: Status) -> str | None:
+    """Whether the pre-registration is older than every run it registered (a kept stage's
+    runs are older by design): its time against each run's first launch. None for a study
+    without ``preregistration.yaml`` (one that reads kept runs only)."""
+    path = st.spec.folder / PREREGISTRATION
+    if not path.is_file():
+        return None
+    written, _ = _registration(path)
+    try:
+        registered = datetime.fromisoformat(str(written.get("written")))
+    except ValueError:
+        return f"pre-registration {path} has no readable time ('written'); nothing is checked"
+    if registered.tzinfo is None:
+        return f"pre-registration {path} has no time zone on its time; nothing is checked"
+    first = st.spec.registered_seeds.start
+    launched = {(arm, seed): first_launch(run.path) for arm, runs in st.runs.items()
+                for seed, run in sorted(runs.items()) if seed >= first}  # fmt: skip
+    known = {key: when for key, when in launched.items() if when is not None}
+    stamp = str(written.get("written"))
+    if not launched:
+        return f"pre-registration written {stamp}: no run yet"
+    early = [f"{arm} seed {seed} (launched {when.isoformat()})"
+             for (arm, seed), when in known.items() if when < registered]  # fmt: skip
+    unknown = [f"{arm} seed {seed}" for (arm, seed), when in launched.items() if when is None]
+    if early:
+        line = f"pre-registration written {stamp} is NOT older than: {', '.join(early)}"
+    elif known:
+        (arm, seed), when = min(known.items(), key=lambda item: item[1])
+        line = (
+            f"pre-registration written {stamp}: older than the first launch of each of its "
+            f"{len(known)} runs (the earliest {when.isoformat()}, {arm} seed {seed})"
+        )
+    else:
+        line = f"pre-registration written {stamp}"
+    if unknown:
+        line += (f"; not checked (no {COMMANDS}, or no time zone on its time): "
+                 f"{', '.join(unknown)}")  # fmt: skip
+    return line
+
+
 def status_lines(st: Status) -> list[str]:
     spec = st.spec
     lines = [f"study {spec.name}: {len(spec.arms)} arms, {spec.n} seeds a stage, at most "
@@ -367,6 +425,9 @@ def status_lines(st: Status) -> list[str]:
              f"{', '.join(spec.columns)} over epochs {spec.window[0]}-{spec.window[1]} of "
              f"{spec.epochs}; runs under {spec.folder}"]  # fmt: skip
     lines += [f"  {line}" for line in amendment_lines(spec.folder / PREREGISTRATION)]
+    order = registration_order(st)
+    if order is not None:
+        lines.append(f"  {order}")
     for name, runs in st.runs.items():
         if not runs:
             lines.append(f"  {name}: no runs yet")

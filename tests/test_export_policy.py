@@ -1,5 +1,5 @@
-"""An exported run keeps its final policy (weights only) and fine-tuning starts from it; the
-resume kit, with its optimizer state, is exported only when asked."""
+"""An exported run keeps its final policy (weights only) and fine-tuning starts from it, and its
+launch log; the resume kit, with its optimizer state, is exported only when asked."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from hmepol_cli.report.export import export_runs
-from hmepol_cli.run import CHECKPOINT, FINAL_POLICY, load_checkpoint, load_trained_policy
+from hmepol_cli.run import CHECKPOINT, COMMANDS, FINAL_POLICY, load_checkpoint, load_trained_policy
 from tests.test_cli import TINY, hmepol
 
 
@@ -18,6 +18,7 @@ def test_an_exported_run_keeps_its_final_policy_for_finetuning(tmp_path):
     hmepol("train", *TINY, "algo=mepol", "epochs=2", f"hydra.run.dir={run}", cwd=tmp_path)
     (kept,) = export_runs(tmp_path / "runs", tmp_path / "kept")
     assert not (kept / CHECKPOINT).exists()
+    assert (kept / COMMANDS).read_text() == (run / COMMANDS).read_text()  # when it was launched
     policy = load_checkpoint(kept / FINAL_POLICY)
     assert "optimizer" not in policy and "generator" not in policy
     full = load_checkpoint(run / CHECKPOINT)

@@ -448,3 +448,47 @@ def test_an_arm_with_no_run_yet_is_timed_at_a_sibling_arms_pace(tmp_path):
     assert st.stage_hours(1) == pytest.approx(20 / 3600)
     line = next(line for line in status_lines(st) if "still needs" in line)
     assert line.endswith("(arms with no run yet at a sibling's pace: a2 at a's)")
+
+
+def launched(run: Path, *stamps: str) -> None:
+    """A run's commands.log, one line per invocation, as a run writes it."""
+    (run / "commands.log").write_text("".join(f"{t} host pid=1 hmepol train\n" for t in stamps))
+
+
+def registered_at(spec_path: Path, stamp: str) -> None:
+    spec = load_spec(spec_path)
+    spec.folder.mkdir(parents=True, exist_ok=True)
+    (spec.folder / "preregistration.yaml").write_text(yaml.safe_dump(
+        {"written": stamp, "commit": "c0ffee", "spec": spec_path.read_text()}))  # fmt: skip
+
+
+def test_status_checks_the_pre_registration_is_older_than_every_run(tmp_path):
+    """Each run's first launch (commands.log's first line, before its first row) against the
+    pre-registration's time, across time zones; a kept stage's runs are older by design."""
+    from hmepol_cli.study import registration_order
+
+    path = spec_file(tmp_path, n=2, stages=2, kept_stages=1)
+    spec = load_spec(path)
+    assert registration_order(status(spec)) is None  # not registered: nothing to check
+    registered_at(path, "2026-12-04T14:28:41Z")
+    assert registration_order(status(spec)).endswith(": no run yet")
+    kept = make_run(spec.arms["a"].folder, 0, 1.0, 5)
+    launched(kept, "2026-11-30T09:00:00+00:00")  # stage 1 is kept: made before, as it should
+    runs = {(arm, s): make_run(spec.arms[arm].folder, s, 1.0, 3) for arm in "ab" for s in (2, 3)}
+    launched(runs["a", 2], "2026-12-04T15:28:42+01:00", "2026-12-04T10:00:00+00:00")  # 14:28:42Z
+    launched(runs["a", 3], "2026-12-04T14:30:00+00:00")
+    launched(runs["b", 2], "2026-12-04T09:29:00-05:00")  # 14:29Z
+    launched(runs["b", 3], "2026-12-04T16:00:00+00:00")
+    line = registration_order(status(spec))
+    assert line == (
+        "pre-registration written 2026-12-04T14:28:41Z: older than the first launch "
+        "of each of its 4 runs (the earliest 2026-12-04T15:28:42+01:00, a seed 2)"
+    )
+    assert f"  {line}" in status_lines(status(spec))
+    launched(runs["b", 2], "2026-12-04T15:28:40+01:00")  # one second before the registration
+    launched(runs["a", 3], "2026-12-04T14:30:00")  # no time zone: cannot be placed
+    (runs["b", 3] / "commands.log").unlink()
+    line = registration_order(status(spec))
+    assert line == ("pre-registration written 2026-12-04T14:28:41Z is NOT older than: b seed 2 "
+                    "(launched 2026-12-04T15:28:40+01:00); not checked (no commands.log, or no "
+                    "time zone on its time): a seed 3, b seed 3")  # fmt: skip

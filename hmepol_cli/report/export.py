@@ -3,11 +3,12 @@
     python -m hmepol_cli.report.export outputs/full docs/results/full
 
 For every run directory under SOURCE (a directory with run.json): config.yaml, run.json,
-epochs.csv and finetune.csv as they are, targets.json, steps.csv (diagnostics) gzipped as
-steps.csv.gz, and eval/final.npz with its positions stored as float16 (a heatmap bin is 0.04
-wide: float16's 1e-3 resolution on [-6, 6] changes no figure, and halves the file), and the
-final policy as policy.pt: the last checkpoint's weights only (no optimizer state, a few MB at
-most), which ``hmepol finetune init=<exported run>`` starts from. The resume kit
+commands.log (when each invocation started: what shows a study's runs began after its pre-
+registration), epochs.csv, finetune.csv and targets.json as they are, steps.csv (diagnostics)
+gzipped as steps.csv.gz, and eval/final.npz with its positions stored as float16 (a heatmap bin
+is 0.04 wide: float16's 1e-3 resolution on [-6, 6] changes no figure, and halves the file), and
+the final policy as policy.pt: the last checkpoint's weights only (no optimizer state, a few MB
+at most), which ``hmepol finetune init=<exported run>`` starts from. The resume kit
 (checkpoints/last.pt, Adam state included) is copied only with ``--kits``: it lets a run go on
 on another machine, and it is what makes a clone heavy. batches.csv and pictures are left out.
 ``hmepol
@@ -30,6 +31,7 @@ import numpy as np
 from hmepol_cli.errors import RunDirError
 from hmepol_cli.run import (
     CHECKPOINT,
+    COMMANDS,
     CONFIG,
     EPOCHS_CSV,
     EVAL_DIR,
@@ -46,7 +48,7 @@ from hmepol_cli.run import (
     save_checkpoint,
 )
 
-KEPT = (CONFIG, RUN_INFO, EPOCHS_CSV, FINETUNE_CSV, TARGETS_JSON)
+KEPT = (CONFIG, RUN_INFO, COMMANDS, EPOCHS_CSV, FINETUNE_CSV, TARGETS_JSON)
 
 
 def export_runs(source: Path, dest: Path, kits: bool = False) -> list[Path]:
