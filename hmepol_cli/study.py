@@ -19,10 +19,13 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import yaml
 
@@ -254,6 +257,10 @@ def arm_runs(arm: Arm, epochs: int) -> dict[int, RunState]:
     return out
 
 
+SMOOTH_EPOCHS = 25  # the running median of an arm's epoch times
+_NEVER = datetime.min.replace(tzinfo=timezone.utc)  # an arm with no launch on record
+
+
 def first_launch(run: Path) -> datetime | None:
     """When a run directory was first launched: the time on its commands.log's first line,
     written before the run's first row (None without a log, or without a time zone)."""
@@ -291,57 +298,87 @@ class Status:
             return True
         return self.complete_stages >= self.spec.stages
 
-    def paces(self) -> dict[str, tuple[float, str]]:
-        """Each arm's pace (seconds an epoch: the median of its runs') and the arm it was
-        measured on. An arm with no run yet takes a sibling's: an arm of the same preset whose
-        overrides set the same keys (another wind, say), the first with a pace; NaN if none."""
-        own = {}
-        for name, runs in self.runs.items():
-            paces = [r.pace for r in runs.values() if math.isfinite(r.pace)]
-            own[name] = float(pd.Series(paces).median()) if paces else math.nan
+    def epoch_seconds(self) -> dict[str, tuple[np.ndarray, list[str]]]:
+        """Each arm's seconds at each of its epochs, for timing what is left, and the arms
+        lent from. At an epoch some of its runs reached: their median. At one none did: a
+        sibling's there (an arm of the same preset whose overrides set the same keys: another
+        wind, say), the most recently launched sibling first, as the likeliest to have run on
+        this machine and layout. Past every run of both: the median of the last 5 epochs
+        known. Each arm's times are a running median over 25 epochs, so that a pause (a
+        suspended process, a busy machine) does not count as the cost of the epoch it hit. All
+        NaN while neither the arm nor a sibling has a run with an epoch.
+
+        Per epoch, not one pace: an arm's epochs need not cost the same (HMepol's exact trust
+        region takes more off-policy iterations early on), which an average of a run's recent
+        epochs misses: timing a fresh run at a finished sibling's last epochs, say."""
+        epochs = self.spec.epochs
+        own = {name: _median_seconds(runs.values(), epochs) for name, runs in self.runs.items()}
+        launched = {name: max((first_launch(r.path) or _NEVER for r in runs.values()),
+                              default=_NEVER) for name, runs in self.runs.items()}  # fmt: skip
         out = {}
         for name, arm in self.spec.arms.items():
-            siblings = [
-                other
-                for other, o in self.spec.arms.items()
-                if other != name
-                and o.preset == arm.preset
-                and _keys(o.overrides) == _keys(arm.overrides)
-            ]
-            source = next((a for a in [name, *siblings] if math.isfinite(own[a])), name)
-            out[name] = (own[source], source)
+            times, lent = own[name].copy(), []
+            siblings = sorted(
+                (other for other, o in self.spec.arms.items()
+                 if other != name and o.preset == arm.preset
+                 and _keys(o.overrides) == _keys(arm.overrides)),
+                key=lambda other: launched[other], reverse=True,
+            )  # fmt: skip
+            for other in siblings:
+                fill = np.isnan(times) & np.isfinite(own[other])
+                if fill.any():
+                    times[fill] = own[other][fill]
+                    lent.append(other)
+            known = np.flatnonzero(np.isfinite(times))
+            if len(known):
+                times[known[-1] + 1 :] = np.median(times[known[-5:]])
+            out[name] = (times, lent)
         return out
 
     def stage_hours(self, stage: int, launcher: str | None = None) -> float:
-        """Hours the stage's unfinished epochs need on this machine, at each arm's pace (a
-        sibling's while it has none: :meth:`paces`; a population trains its members together:
-        the slowest member; otherwise one after the other), its sweeps ``parallel_sweeps`` at a
-        time (the longer of the longest sweep and their sum shared out); NaN while an arm with
-        epochs left has no pace of its own or a sibling's."""
+        """Hours the stage's unfinished epochs need on this machine, each run's at its arm's
+        :meth:`epoch_seconds` from where it stands (a population trains its members
+        together: the slowest member; otherwise one after the other), its sweeps
+        ``parallel_sweeps`` at a time (the longer of the longest sweep and their sum shared
+        out); NaN while an arm with epochs left has no time of its own or a sibling's."""
         population = (launcher or self.spec.launcher).startswith("population")
-        paces = self.paces()
+        seconds = self.epoch_seconds()
         sweeps = []
         for name, runs in self.runs.items():
-            pace = paces[name][0]
+            times = seconds[name][0]
             for seeds in sweep_seeds(self.spec, stage):
-                left = [max(0, self.spec.epochs - (runs[s].done if s in runs else 0))
-                        for s in seeds]  # fmt: skip
+                left = [times[runs[s].done if s in runs else 0 :].sum() for s in seeds]
                 if not any(left):
                     continue
-                if not math.isfinite(pace):
+                if np.isnan(left).any():
                     return math.nan
-                sweeps.append(pace * (max(left) if population else sum(left)))
+                sweeps.append(max(left) if population else sum(left))
         if not sweeps:
             return 0.0
-        return max(max(sweeps), sum(sweeps) / self.spec.parallel_sweeps) / 3600
+        return float(max(max(sweeps), sum(sweeps) / self.spec.parallel_sweeps) / 3600)
 
-    def borrowed_paces(self) -> str:
-        """Which arms' hours are at a sibling's pace: '' when none."""
-        borrowed = [f"{name} at {source}'s" for name, (pace, source) in self.paces().items()
-                    if source != name and math.isfinite(pace)]  # fmt: skip
+    def borrowed_times(self) -> str:
+        """Which arms' hours are partly at a sibling's epochs: '' when none."""
+        borrowed = [f"{name} at {' and '.join(lent)}'s" for name, (times, lent)
+                    in self.epoch_seconds().items() if lent]  # fmt: skip
         if not borrowed:
             return ""
-        return f" (arms with no run yet at a sibling's pace: {', '.join(borrowed)})"
+        return (" (epochs an arm's runs have not reached yet timed at a sibling's: "
+                f"{', '.join(borrowed)})")
+
+
+def _median_seconds(runs: Iterable[RunState], epochs: int) -> np.ndarray:
+    """The median ``seconds`` of ``runs`` at each epoch 0..epochs-1, then a running median over
+    :data:`SMOOTH_EPOCHS` epochs; NaN where no run reached."""
+    columns = [r.table["seconds"].to_numpy(float)[:epochs] for r in runs if "seconds" in r.table]
+    table = np.full((max(len(columns), 1), epochs), np.nan)
+    for row, column in zip(table, columns, strict=False):  # no run: one row of NaN
+        row[: len(column)] = column
+    with warnings.catch_warnings():  # all-NaN at an epoch no run reached: NaN is the answer
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nanmedian(table, axis=0)
+    smooth = pd.Series(median).rolling(SMOOTH_EPOCHS, center=True, min_periods=1).median()
+    return np.where(np.isnan(median), np.nan, smooth.to_numpy())
 
 
 def _keys(overrides: tuple[str, ...]) -> tuple[str, ...]:
@@ -442,7 +479,7 @@ def status_lines(st: Status) -> list[str]:
         stage = st.complete_stages + 1
         hours = st.stage_hours(stage)
         left = "unknown until its runs have an epoch" if math.isnan(hours) else f"{hours:.1f} h"
-        borrowed = "" if math.isnan(hours) else st.borrowed_paces()
+        borrowed = "" if math.isnan(hours) else st.borrowed_times()
         lines.append(f"stage {stage} still needs {left} on this machine{borrowed}")
     for (b, a), d in st.differences.items():
         if d.n:

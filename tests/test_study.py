@@ -8,6 +8,7 @@ import itertools
 import json
 import math
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -439,7 +440,9 @@ def test_an_arm_with_no_run_yet_is_timed_at_a_sibling_arms_pace(tmp_path):
     for s in range(2):
         make_run(spec.arms["a"].folder, s, 1.0, 5)  # a's stage 1 done, 2 s an epoch
     st = status(spec)
-    assert st.paces()["a2"] == (2.0, "a") and math.isnan(st.paces()["b"][0])
+    seconds = st.epoch_seconds()
+    assert seconds["a2"][0].tolist() == [2.0] * 5 and seconds["a2"][1] == ["a"]
+    assert np.isnan(seconds["b"][0]).all() and seconds["b"][1] == []
     assert math.isnan(st.stage_hours(1))
     assert any("still needs unknown" in line for line in status_lines(st))
     make_run(spec.arms["b"].folder, 0, 1.0, 1)  # b's first epoch: its own pace, 2 s
@@ -447,7 +450,60 @@ def test_an_arm_with_no_run_yet_is_timed_at_a_sibling_arms_pace(tmp_path):
     # a population per arm, one at a time: a2 5 epochs x 2 s, b max(4, 5) x 2 s
     assert st.stage_hours(1) == pytest.approx(20 / 3600)
     line = next(line for line in status_lines(st) if "still needs" in line)
-    assert line.endswith("(arms with no run yet at a sibling's pace: a2 at a's)")
+    assert line.endswith(
+        "(epochs an arm's runs have not reached yet timed at a sibling's: a2 at a's)")
+
+
+def timed(run: Path, seconds: list[float]) -> None:
+    """Give a run's epochs.csv these ``seconds``, one an epoch."""
+    table = pd.read_csv(run / "epochs.csv")
+    table["seconds"] = seconds[: len(table)]
+    table.to_csv(run / "epochs.csv", index=False)
+
+
+def test_what_is_left_is_timed_epoch_by_epoch_at_the_epochs_a_run_has_left(tmp_path):
+    """By hand: a sibling whose first 30 epochs cost 10 s and its last 30 cost 2 s times a
+    fresh run at 30 x 10 + 30 x 2 = 360 s (a last-epochs pace would say 60 x 2 = 120 s), and a
+    run at epoch 45 at its 15 epochs left x 2 s = 30 s; a pause of 1000 s in one epoch is not
+    counted; the most recently launched sibling lends; past every run the last epochs' time."""
+    arms = {"a": {"preset": "demo", "overrides": ["wind=0.1"]},
+            "a2": {"preset": "demo", "overrides": ["wind=0.2"]},
+            "a3": {"preset": "demo", "overrides": ["wind=0.3"]}}  # fmt: skip
+    spec = load_spec(spec_file(tmp_path, n=2, stages=1, arms=arms, comparisons=[["a2", "a"]],
+                               epochs=60))  # fmt: skip
+
+    def runs(arm: str, seconds: list[float], launch: str | None = None) -> None:
+        """The arm's stage (seeds 0 and 1, a population) at these epoch times."""
+        for seed in (0, 1):
+            run = make_run(spec.arms[arm].folder, seed, 1.0, len(seconds), epochs=60)
+            timed(run, seconds)
+            if launch:
+                launched(run, launch)
+
+    steps = [10.0] * 30 + [2.0] * 30
+    steps[50] = 1000.0  # a suspended process
+    runs("a", steps, "2026-01-02T00:00:00+00:00")
+    st = status(spec)
+    assert st.stage_hours(1) == pytest.approx(2 * 360 / 3600)  # a2 and a3, one at a time
+    seconds = st.epoch_seconds()
+    assert seconds["a2"][1] == ["a"] and seconds["a2"][0].sum() == pytest.approx(360)
+
+    runs("a2", [3.0] * 45)
+    st = status(spec)
+    assert st.epoch_seconds()["a2"][0][:45].tolist() == [3.0] * 45  # its own where it has them
+    assert st.stage_hours(1) == pytest.approx((15 * 2 + 360) / 3600)  # a2's 15 left, a3's 60
+
+    # a3's siblings: a, launched 2026-01-02, and a2, launched later, whose 45 epochs lend first
+    runs("a2", [3.0] * 45, "2026-01-03T00:00:00+00:00")
+    times, lent = status(spec).epoch_seconds()["a3"]
+    assert lent == ["a2", "a"] and times.sum() == pytest.approx(45 * 3 + 15 * 2)
+
+    # past every run: the last 5 epochs' time. a3 alone, at epoch 30 of 60: 30 left x 6 s
+    shutil.rmtree(spec.arms["a"].folder)
+    shutil.rmtree(spec.arms["a2"].folder)
+    runs("a3", [4.0] * 15 + [6.0] * 15)
+    # a and a2 now have no run: a3's epochs, 15 x 4 + 15 x 6 + 30 x 6 = 330 s each
+    assert status(spec).stage_hours(1) == pytest.approx((30 * 6 + 2 * 330) / 3600)
 
 
 def launched(run: Path, *stamps: str) -> None:
