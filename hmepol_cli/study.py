@@ -298,37 +298,42 @@ class Status:
             return True
         return self.complete_stages >= self.spec.stages
 
-    def epoch_seconds(self) -> dict[str, tuple[np.ndarray, list[str]]]:
-        """Each arm's seconds at each of its epochs, for timing what is left, and the arms
-        lent from. At an epoch some of its runs reached: their median. At one none did: a
-        sibling's there (an arm of the same preset whose overrides set the same keys: another
-        wind, say), the most recently launched sibling first, as the likeliest to have run on
-        this machine and layout. Past every run of both: the median of the last 5 epochs
-        known. Each arm's times are a running median over 25 epochs, so that a pause (a
-        suspended process, a busy machine) does not count as the cost of the epoch it hit. All
-        NaN while neither the arm nor a sibling has a run with an epoch.
+    def epoch_seconds(self, stage: int) -> dict[str, tuple[np.ndarray, list[str]]]:
+        """Each arm's seconds at each of its epochs, for timing what stage ``stage`` has left,
+        and the arms lent from. An epoch takes the median of the newest runs that reached it:
+        the arm's runs of this stage, else its runs of other stages, else a sibling's (an arm
+        of the same preset whose overrides set the same keys: another wind, say), the most
+        recently launched sibling first; the newest are the likeliest to have run on this
+        machine, code and layout. Past every run: the median of the last 5 epochs known. Each
+        source is a running median over 25 epochs, so that a pause (a suspended process, a
+        busy machine) does not count as the cost of the epoch it hit. All NaN while neither
+        the arm nor a sibling has a run with an epoch.
 
         Per epoch, not one pace: an arm's epochs need not cost the same (HMepol's exact trust
         region takes more off-policy iterations early on), which an average of a run's recent
         epochs misses: timing a fresh run at a finished sibling's last epochs, say."""
-        epochs = self.spec.epochs
-        own = {name: _median_seconds(runs.values(), epochs) for name, runs in self.runs.items()}
+        epochs, seeds = self.spec.epochs, set(stage_seeds(self.spec, stage))
         launched = {name: max((first_launch(r.path) or _NEVER for r in runs.values()),
                               default=_NEVER) for name, runs in self.runs.items()}  # fmt: skip
         out = {}
         for name, arm in self.spec.arms.items():
-            times, lent = own[name].copy(), []
+            runs = self.runs[name]
             siblings = sorted(
                 (other for other, o in self.spec.arms.items()
                  if other != name and o.preset == arm.preset
                  and _keys(o.overrides) == _keys(arm.overrides)),
                 key=lambda other: launched[other], reverse=True,
             )  # fmt: skip
-            for other in siblings:
-                fill = np.isnan(times) & np.isfinite(own[other])
+            sources = [(name, [r for s, r in runs.items() if s in seeds]),
+                       (name, [r for s, r in runs.items() if s not in seeds])]  # fmt: skip
+            sources += [(other, list(self.runs[other].values())) for other in siblings]
+            times, lent = np.full(epochs, np.nan), []
+            for source, group in sources:
+                known = _median_seconds(group, epochs)
+                fill = np.isnan(times) & np.isfinite(known)
                 if fill.any():
-                    times[fill] = own[other][fill]
-                    lent.append(other)
+                    times[fill] = known[fill]
+                    lent += [source] if source != name else []
             known = np.flatnonzero(np.isfinite(times))
             if len(known):
                 times[known[-1] + 1 :] = np.median(times[known[-5:]])
@@ -342,7 +347,7 @@ class Status:
         ``parallel_sweeps`` at a time (the longer of the longest sweep and their sum shared
         out); NaN while an arm with epochs left has no time of its own or a sibling's."""
         population = (launcher or self.spec.launcher).startswith("population")
-        seconds = self.epoch_seconds()
+        seconds = self.epoch_seconds(stage)
         sweeps = []
         for name, runs in self.runs.items():
             times = seconds[name][0]
@@ -357,10 +362,10 @@ class Status:
             return 0.0
         return float(max(max(sweeps), sum(sweeps) / self.spec.parallel_sweeps) / 3600)
 
-    def borrowed_times(self) -> str:
-        """Which arms' hours are partly at a sibling's epochs: '' when none."""
+    def borrowed_times(self, stage: int) -> str:
+        """Which arms' hours for ``stage`` are partly at a sibling's epochs: '' when none."""
         borrowed = [f"{name} at {' and '.join(lent)}'s" for name, (times, lent)
-                    in self.epoch_seconds().items() if lent]  # fmt: skip
+                    in self.epoch_seconds(stage).items() if lent]  # fmt: skip
         if not borrowed:
             return ""
         return (" (epochs an arm's runs have not reached yet timed at a sibling's: "
@@ -479,7 +484,7 @@ def status_lines(st: Status) -> list[str]:
         stage = st.complete_stages + 1
         hours = st.stage_hours(stage)
         left = "unknown until its runs have an epoch" if math.isnan(hours) else f"{hours:.1f} h"
-        borrowed = "" if math.isnan(hours) else st.borrowed_times()
+        borrowed = "" if math.isnan(hours) else st.borrowed_times(stage)
         lines.append(f"stage {stage} still needs {left} on this machine{borrowed}")
     for (b, a), d in st.differences.items():
         if d.n:

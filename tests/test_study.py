@@ -440,7 +440,7 @@ def test_an_arm_with_no_run_yet_is_timed_at_a_sibling_arms_pace(tmp_path):
     for s in range(2):
         make_run(spec.arms["a"].folder, s, 1.0, 5)  # a's stage 1 done, 2 s an epoch
     st = status(spec)
-    seconds = st.epoch_seconds()
+    seconds = st.epoch_seconds(1)
     assert seconds["a2"][0].tolist() == [2.0] * 5 and seconds["a2"][1] == ["a"]
     assert np.isnan(seconds["b"][0]).all() and seconds["b"][1] == []
     assert math.isnan(st.stage_hours(1))
@@ -485,17 +485,17 @@ def test_what_is_left_is_timed_epoch_by_epoch_at_the_epochs_a_run_has_left(tmp_p
     runs("a", steps, "2026-01-02T00:00:00+00:00")
     st = status(spec)
     assert st.stage_hours(1) == pytest.approx(2 * 360 / 3600)  # a2 and a3, one at a time
-    seconds = st.epoch_seconds()
+    seconds = st.epoch_seconds(1)
     assert seconds["a2"][1] == ["a"] and seconds["a2"][0].sum() == pytest.approx(360)
 
     runs("a2", [3.0] * 45)
     st = status(spec)
-    assert st.epoch_seconds()["a2"][0][:45].tolist() == [3.0] * 45  # its own where it has them
+    assert st.epoch_seconds(1)["a2"][0][:45].tolist() == [3.0] * 45  # its own where it has them
     assert st.stage_hours(1) == pytest.approx((15 * 2 + 360) / 3600)  # a2's 15 left, a3's 60
 
     # a3's siblings: a, launched 2026-01-02, and a2, launched later, whose 45 epochs lend first
     runs("a2", [3.0] * 45, "2026-01-03T00:00:00+00:00")
-    times, lent = status(spec).epoch_seconds()["a3"]
+    times, lent = status(spec).epoch_seconds(1)["a3"]
     assert lent == ["a2", "a"] and times.sum() == pytest.approx(45 * 3 + 15 * 2)
 
     # past every run: the last 5 epochs' time. a3 alone, at epoch 30 of 60: 30 left x 6 s
@@ -504,6 +504,22 @@ def test_what_is_left_is_timed_epoch_by_epoch_at_the_epochs_a_run_has_left(tmp_p
     runs("a3", [4.0] * 15 + [6.0] * 15)
     # a and a2 now have no run: a3's epochs, 15 x 4 + 15 x 6 + 30 x 6 = 330 s each
     assert status(spec).stage_hours(1) == pytest.approx((30 * 6 + 2 * 330) / 3600)
+
+
+def test_a_stage_is_timed_at_its_own_runs_before_the_arms_earlier_stages(tmp_path):
+    """Stage 2's runs time its epochs before stage 1's (another machine or code, say), which
+    time the epochs stage 2 has not reached: by hand, stage 1 at 10 s an epoch, seed 2 at 3 s
+    for 5 epochs: seed 3 (fresh) needs 5 x 3 + 55 x 10 = 565 s, seed 2 55 x 10; a population:
+    565 s an arm (a median over all three runs would give 600)."""
+    spec = load_spec(spec_file(tmp_path, n=2, stages=2, epochs=60))
+    for arm in "ab":
+        for seed in (0, 1):
+            timed(make_run(spec.arms[arm].folder, seed, 1.0, 60, epochs=60), [10.0] * 60)
+        timed(make_run(spec.arms[arm].folder, 2, 1.0, 5, epochs=60), [3.0] * 5)
+    st = status(spec)
+    assert st.complete_stages == 1
+    assert st.epoch_seconds(2)["a"][0].sum() == pytest.approx(565)
+    assert st.stage_hours(2) == pytest.approx(2 * 565 / 3600)  # two arms, one at a time
 
 
 def launched(run: Path, *stamps: str) -> None:
