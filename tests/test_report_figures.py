@@ -235,3 +235,24 @@ def test_runs_made_with_the_old_rules_say_so(tmp_path):
 )
 def test_a_config_older_than_backtracking_ran_with_first_step(saved, rule):
     assert backtracking_rule(saved) == rule
+
+
+def test_a_series_with_other_seed_counts_in_other_panels_has_one_legend_entry():
+    """Mepol with 4 seeds at one wind and 8 at another is one series: one entry, "n=4–8", in
+    its first place; a series drawn seed by seed (n=2) or with one count keeps its label."""
+    from matplotlib.figure import Figure
+
+    from hmepol_cli.report.series import figure_legend
+
+    fig = Figure()
+    left, right = fig.subplots(1, 2)
+    left.plot([0, 1], label="Mepol (n=4)")
+    left.plot([0, 1], label="HMepol (n=4)")
+    left.plot([0, 1], label="α-Mepol (n=2, each seed drawn)")
+    right.plot([0, 1], label="Mepol (n=8)")
+    right.plot([0, 1], label="HMepol (n=4)")
+    right.plot([0, 1], label="Mepol (exact) (n=3)")
+    figure_legend(fig, [left, right])
+    shown = [text.get_text() for text in fig.legends[0].get_texts()]
+    assert shown == ["Mepol (n=4–8)", "HMepol (n=4)", "α-Mepol (n=2, each seed drawn)",
+                     "Mepol (exact) (n=3)"]  # fmt: skip

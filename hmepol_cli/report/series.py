@@ -7,6 +7,7 @@ holds every line and band, and one legend for a figure.
 from __future__ import annotations
 
 import hashlib
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -193,6 +194,7 @@ def figure_legend(fig, axes) -> None:
     for ax in np.ravel(axes):
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
             seen.setdefault(label, handle)
+    seen = merged_counts(seen)
     if seen:
         # As many columns as fit the figure's width (about 0.075 inch a character at 10 pt).
         entry = 0.075 * max(map(len, seen)) + 0.7
@@ -204,3 +206,25 @@ def figure_legend(fig, axes) -> None:
             ncols=cols,
             frameon=False,
         )
+
+
+PLAIN_COUNT = re.compile(r"(?P<name>.+) \(n=(?P<n>\d+)\)")  # a series drawn with its band
+
+
+def merged_counts(entries: dict[str, object]) -> dict[str, object]:
+    """One entry per series whose panels hold different numbers of seeds: "Mepol (n=4)" and
+    "Mepol (n=8)" (the same style in two panels) become "Mepol (n=4–8)", in the first's place;
+    any other label is kept as it is."""
+    counts: dict[str, list[int]] = {}
+    for label in entries:
+        if match := PLAIN_COUNT.fullmatch(label):
+            counts.setdefault(match["name"], []).append(int(match["n"]))
+    out: dict[str, object] = {}
+    for label, handle in entries.items():
+        match = PLAIN_COUNT.fullmatch(label)
+        if match is None or len(counts[match["name"]]) == 1:
+            out[label] = handle
+            continue
+        ns = counts[match["name"]]
+        out.setdefault(f"{match['name']} (n={min(ns)}–{max(ns)})", handle)
+    return out
