@@ -36,6 +36,7 @@ from hmepol_cli.report.comparisons import (
     adastop,
     decision_text,
     paired,
+    undecided_arms,
     window_metric,
 )
 from hmepol_cli.run.io import atomic_write_text
@@ -341,7 +342,8 @@ class Status:
         return out
 
     def stage_hours(self, stage: int, launcher: str | None = None) -> float:
-        """Hours the stage's unfinished epochs need on this machine, each run's at its arm's
+        """Hours the stage's unfinished epochs need on this machine (its arms: :func:`stage_arms`),
+        each run's at its arm's
         :meth:`epoch_seconds` from where it stands (a population trains its members
         together: the slowest member; otherwise one after the other), its sweeps
         ``parallel_sweeps`` at a time (the longer of the longest sweep and their sum shared
@@ -349,8 +351,8 @@ class Status:
         population = (launcher or self.spec.launcher).startswith("population")
         seconds = self.epoch_seconds(stage)
         sweeps = []
-        for name, runs in self.runs.items():
-            times = seconds[name][0]
+        for name in stage_arms(self.spec, self.decisions[: stage - 1]):
+            runs, times = self.runs[name], seconds[name][0]
             for seeds in sweep_seeds(self.spec, stage):
                 left = [times[runs[s].done if s in runs else 0 :].sum() for s in seeds]
                 if not any(left):
@@ -392,32 +394,45 @@ def _keys(overrides: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def status(spec: Spec) -> Status:
-    """Where a study stands, from its run directories (reads only)."""
+    """Where a study stands, from its run directories (reads only). A stage is complete when
+    the arms it trains have every seed of it: all arms at stage 1, later the arms of the
+    comparisons AdaStop left undecided (:func:`stage_arms`)."""
     runs = {name: arm_runs(arm, spec.epochs) for name, arm in spec.arms.items()}
+    first, last = spec.window
+    values: dict[str, dict[int, float]] = {a: {} for a in runs}
+    decisions: list[Stage] = []
     complete = 0
     for stage in range(1, spec.stages + 1):
-        if all(
-            s in runs[a] and runs[a][s].complete for a in runs for s in stage_seeds(spec, stage)
-        ):
-            complete = stage
-        else:
+        arms = stage_arms(spec, decisions)
+        seeds = stage_seeds(spec, stage)
+        if not arms or not all(s in runs[a] and runs[a][s].complete for a in arms for s in seeds):
             break
-    seeds = range(complete * spec.n)
-    first, last = spec.window
-    values = {
-        a: {s: window_metric(runs[a][s].table, spec.columns, first, last,
-                             runs[a][s].status == "failed") for s in seeds}
-        for a in runs
-    }  # fmt: skip
-    decisions = []
-    if complete:
+        complete = stage
+        for a in arms:
+            for s in seeds:
+                values[a][s] = window_metric(runs[a][s].table, spec.columns, first, last,
+                                             runs[a][s].status == "failed")  # fmt: skip
         decisions = adastop(
-            {a: [values[a][s] for s in seeds] for a in runs}, spec.n, spec.stages,
+            {a: [values[a][s] for s in sorted(values[a])] for a in runs}, spec.n, spec.stages,
             spec.comparisons, spec.alpha, spec.beta, spec.permutations, spec.adastop_seed,
         )  # fmt: skip
+        if decisions[-1].finished:
+            break
     differences = {(b, a): paired(values[a], values[b], spec.half_width)
                    for b, a in spec.comparisons}  # fmt: skip
     return Status(spec, runs, complete, values, decisions, differences)
+
+
+def stage_arms(spec: Spec, decisions: list[Stage]) -> list[str]:
+    """The arms the next stage trains, after ``decisions`` (AdaStop's, one per complete
+    stage): every arm at stage 1; later the arms of the comparisons still undecided, in the
+    spec's order (none once AdaStop has finished)."""
+    if not decisions:
+        return list(spec.arms)
+    if decisions[-1].finished:
+        return []
+    undecided = undecided_arms(decisions[-1].decisions)
+    return [a for a in spec.arms if a in undecided]
 
 
 def registration_order(st: Status) -> str | None:
@@ -492,8 +507,8 @@ def status_lines(st: Status) -> list[str]:
     if spec.kept_stages:
         seeds = [s for s in spec.registered_seeds if s < st.complete_stages * spec.n]
         for b, a in spec.comparisons:
-            d = paired({s: st.values[a][s] for s in seeds}, {s: st.values[b][s] for s in seeds},
-                       spec.half_width)  # fmt: skip
+            d = paired({s: v for s, v in st.values[a].items() if s in seeds},
+                       {s: v for s, v in st.values[b].items() if s in seeds}, spec.half_width)
             if d.n:
                 lines.append(f"{b} - {a}, the pre-registered stages' seeds alone "
                              f"({seeds[0]}-{seeds[-1]}): {d.text()}; {d.answer(b, a)}")  # fmt: skip
@@ -641,8 +656,9 @@ def _progress(spec: Spec, stage: int, last: str, warned: list[bool]) -> str:
     a pace, a warning if the stage needs more than WARN_HOURS; the line printed."""
     st = status(spec)
     seeds = stage_seeds(spec, stage)
-    done = sum(st.runs[a][s].done for a in st.runs for s in seeds if s in st.runs[a])
-    total = spec.epochs * len(seeds) * len(spec.arms)
+    arms = stage_arms(spec, st.decisions[: stage - 1])
+    done = sum(st.runs[a][s].done for a in arms for s in seeds if s in st.runs[a])
+    total = spec.epochs * len(seeds) * len(arms)
     hours = st.stage_hours(stage)
     left = f", ~{hours:.1f} h left" if math.isfinite(hours) else ""
     line = f"stage {stage} of {spec.stages}: {done}/{total} epochs{left}"
@@ -703,8 +719,9 @@ def _run_sweeps(spec: Spec, stage: int, todo: list[tuple[Arm, list[int]]],
         raise SystemExit(failed)
 
 
-def run_study(spec: Spec) -> Status:
-    """Run the study to its decision (or to its last stage), resuming whatever is there."""
+def run_study(spec: Spec, until: int | None = None) -> Status:
+    """Run the study to its decision (or to its last stage, or to stage ``until``), resuming
+    whatever is there."""
     if spec.posthoc:
         raise UserError(f"{spec.path} reads kept runs (posthoc: true) and trains nothing; use "
                         "hmepol study SPEC --status")  # fmt: skip
@@ -723,16 +740,25 @@ def run_study(spec: Spec) -> Status:
             for line in status_lines(st):
                 say(line)
             return st
+        if until is not None and st.complete_stages >= until:
+            for line in status_lines(st):
+                say(line)
+            say(f"stopped after stage {until} (--until-stage {until}); the same command "
+                "without it goes on")  # fmt: skip
+            return st
         stage = st.complete_stages + 1
         seeds = stage_seeds(spec, stage)
+        arms = stage_arms(spec, st.decisions)
+        which = ("" if len(arms) == len(spec.arms)
+                 else " (the arms of the comparisons AdaStop left undecided)")  # fmt: skip
         say(f"stage {stage} of {spec.stages}: seeds {seeds[0]}-{seeds[-1]} of "
-            f"{', '.join(spec.arms)}")  # fmt: skip
+            f"{', '.join(arms)}{which}")  # fmt: skip
         hours = st.stage_hours(stage)
         if math.isfinite(hours) and hours > WARN_HOURS:
             print(f"hmepol: warning: stage {stage} of {spec.name} needs about {hours:.1f} h on "
                   "this machine", file=sys.stderr, flush=True)  # fmt: skip
         warned = [math.isfinite(hours) and hours > WARN_HOURS]
-        todo = [(arm, seeds) for arm in spec.arms.values() for seeds in sweep_seeds(spec, stage)]
+        todo = [(spec.arms[a], seeds) for a in arms for seeds in sweep_seeds(spec, stage)]
         _run_sweeps(spec, stage, todo, warned)
         st = status(spec)
         if st.complete_stages < stage:
@@ -752,6 +778,9 @@ def main(args: list[str]) -> None:
     )
     parser.add_argument("spec", help="a study spec (YAML; presets in conf/study/)")
     parser.add_argument("--status", action="store_true", help="where the study stands; no training")
+    parser.add_argument("--until-stage", type=int, metavar="K",
+                        help="stop once stage K is complete (the same command without it goes "
+                        "on from there)")  # fmt: skip
     parser.add_argument("--amend", metavar="REASON",
                         help="record the spec as now written and this commit as the study's "
                         "registration for what it has not yet trained; only how runs are "
@@ -768,4 +797,7 @@ def main(args: list[str]) -> None:
         print(f"hmepol study: amendment recorded in {path}; run the study from this commit")
         return
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
-    run_study(spec)
+    if ns.until_stage is not None and not 1 <= ns.until_stage <= spec.stages:
+        raise UserError(f"--until-stage {ns.until_stage}: the study {spec.name} has stages 1 to "
+                        f"{spec.stages}")  # fmt: skip
+    run_study(spec, ns.until_stage)

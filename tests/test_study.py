@@ -19,6 +19,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis.strategies import floats as st_floats
+from hypothesis.strategies import integers as st_integers
 from scipy import stats
 
 from hmepol_cli.errors import UserError
@@ -564,3 +567,73 @@ def test_status_checks_the_pre_registration_is_older_than_every_run(tmp_path):
     assert line == ("pre-registration written 2026-12-04T14:28:41Z is NOT older than: b seed 2 "
                     "(launched 2026-12-04T15:28:40+01:00); not checked (no commands.log, or no "
                     "time zone on its time): a seed 3, b seed 3")  # fmt: skip
+
+
+def _four_arms(tmp_path: Path, **extra: object):
+    """Arms a, b, c, d; comparisons b - a and d - c (two winds, say)."""
+    arms = {name: {"preset": "demo", "overrides": [f"wind=0.{i + 1}"]}
+            for i, name in enumerate("abcd")}  # fmt: skip
+    return load_spec(spec_file(tmp_path, n=4, stages=3, arms=arms,
+                               comparisons=[["b", "a"], ["d", "c"]], **extra))  # fmt: skip
+
+
+@given(shift=st_floats(0.0, 3.0), other=st_floats(0.0, 3.0), noise=st_integers(0, 10_000))
+@settings(max_examples=25, deadline=None)
+def test_adastop_needs_no_more_seeds_of_the_arms_it_has_decided(shift, other, noise):
+    """AdaStop's decisions are the same whether an arm whose comparisons are all decided has
+    the later stages' values or not: the library tests only what is undecided."""
+    from hmepol_cli.report.comparisons import adastop, undecided_arms
+
+    rng = np.random.default_rng(noise)
+    full = {"a": rng.normal(0, 1, 12), "b": rng.normal(shift, 1, 12),
+            "c": rng.normal(0, 1, 12), "d": rng.normal(other, 1, 12)}  # fmt: skip
+    pairs = [("b", "a"), ("d", "c")]
+    everything = adastop(full, 4, 3, pairs, permutations=500)
+    needed = dict.fromkeys(full, 4)  # stage 1 trains every arm
+    for stage in everything[:-1]:
+        for arm in undecided_arms(stage.decisions):
+            needed[arm] = stage.seeds + 4
+    trimmed = {arm: values[: needed[arm]] for arm, values in full.items()}
+    assert adastop(trimmed, 4, 3, pairs, permutations=500) == everything
+
+
+def test_a_later_stage_trains_only_the_arms_of_undecided_comparisons(tmp_path, monkeypatch):
+    """b - a is clear after stage 1, d - c is not: stage 2 trains c and d alone, is complete
+    without a and b, and its hours count only them; --until-stage stops after a stage."""
+    from hmepol_cli import study
+    from hmepol_cli.study import run_study, stage_arms
+
+    spec = _four_arms(tmp_path)
+    level = {"a": lambda s: 1.0 + 0.01 * s, "b": lambda s: 3.0 + 0.01 * s,
+             "c": lambda s: 1.0 + 0.3 * (s % 4), "d": lambda s: 1.0 + 0.3 * ((s + 1) % 4)}
+    trained = []
+
+    def sweeps(spec, stage, todo, warned):  # noqa: ANN001, ANN202, ARG001
+        for arm, seeds in todo:
+            trained.append((stage, arm.name))
+            for s in seeds:
+                make_run(arm.folder, s, level[arm.name](s), 5)
+
+    monkeypatch.setattr(study, "_run_sweeps", sweeps)
+    monkeypatch.setattr(study, "code_commit", lambda: "c0ffee")
+    st = run_study(spec, until=1)
+    assert st.complete_stages == 1 and trained == [(1, a) for a in "abcd"]
+    assert st.decisions[0].decisions == {("b", "a"): "larger", ("d", "c"): "continue"}
+    assert stage_arms(spec, st.decisions) == ["c", "d"]
+    # stage 2's hours: c's and d's 4 seeds, 5 epochs at 2 s, one population each, one at a time
+    assert st.stage_hours(2) == pytest.approx(2 * 5 * 2 / 3600)
+
+    trained.clear()
+    st = run_study(spec, until=2)
+    assert trained == [(2, "c"), (2, "d")]
+    assert st.complete_stages == 2 and set(st.values["a"]) == {0, 1, 2, 3}
+    assert set(st.values["c"]) == set(range(8))
+    assert not (spec.arms["a"].folder / "seed-4").exists()
+
+
+def test_until_stage_out_of_range_is_one_line(tmp_path, capsys):
+    from hmepol_cli.study import main
+
+    path = spec_file(tmp_path, n=2, stages=2)
+    with pytest.raises(UserError, match=r"--until-stage 3: the study .* has stages 1 to 2"):
+        main([str(path), "--until-stage", "3"])

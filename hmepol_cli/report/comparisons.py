@@ -125,7 +125,9 @@ def adastop(
     """AdaStop's decisions stage by stage over each arm's values in seed order (the first n
     are stage 1, the next n stage 2, ...), for every complete stage, until it finishes.
 
-    Each arm needs the same number of values; only whole stages are tested."""
+    A stage is complete when every arm of a comparison still undecided (every arm, at stage 1)
+    has its n values: an arm whose comparisons are all decided needs no more seeds, as AdaStop
+    tests only the undecided comparisons at a later stage."""
     from adastop import MultipleAgentsComparator
 
     arms = list(values)
@@ -134,9 +136,11 @@ def adastop(
     comparator = MultipleAgentsComparator(
         n=n, K=stages, B=permutations, comparisons=pairs, alpha=alpha, beta=beta, seed=seed
     )
-    have = min(len(v) for v in values.values()) // n
+    playing = set(arms)
     out: list[Stage] = []
-    for k in range(min(have, stages)):
+    for k in range(stages):
+        if any(len(values[arm]) < (k + 1) * n for arm in playing):
+            break
         so_far = {arm: np.asarray(values[arm][: (k + 1) * n], dtype=float) for arm in arms}
         with contextlib.redirect_stdout(io.StringIO()):  # its own progress prints
             comparator.partial_compare(so_far, verbose=False)
@@ -147,7 +151,13 @@ def adastop(
         out.append(Stage(k + 1, (k + 1) * n, decisions, bool(comparator.is_finished)))
         if comparator.is_finished:
             break
+        playing = undecided_arms(decisions)
     return out
+
+
+def undecided_arms(decisions: Mapping[tuple[str, str], str]) -> set[str]:
+    """The arms of the comparisons AdaStop has not decided: those the next stage trains."""
+    return {arm for pair, decision in decisions.items() if decision == "continue" for arm in pair}
 
 
 def decision_text(a: str, b: str, decision: str) -> str:
