@@ -366,8 +366,9 @@ class Status:
 
     def borrowed_times(self, stage: int) -> str:
         """Which arms' hours for ``stage`` are partly at a sibling's epochs: '' when none."""
+        arms = stage_arms(self.spec, self.decisions[: stage - 1])
         borrowed = [f"{name} at {' and '.join(lent)}'s" for name, (times, lent)
-                    in self.epoch_seconds(stage).items() if lent]  # fmt: skip
+                    in self.epoch_seconds(stage).items() if lent and name in arms]  # fmt: skip
         if not borrowed:
             return ""
         return (" (epochs an arm's runs have not reached yet timed at a sibling's: "
@@ -500,7 +501,10 @@ def status_lines(st: Status) -> list[str]:
         hours = st.stage_hours(stage)
         left = "unknown until its runs have an epoch" if math.isnan(hours) else f"{hours:.1f} h"
         borrowed = "" if math.isnan(hours) else st.borrowed_times(stage)
-        lines.append(f"stage {stage} still needs {left} on this machine{borrowed}")
+        arms = stage_arms(spec, st.decisions)
+        which = ("" if len(arms) == len(spec.arms)
+                 else f" for {', '.join(arms)}, the arms of the comparisons AdaStop left undecided")
+        lines.append(f"stage {stage} still needs {left}{which} on this machine{borrowed}")
     for (b, a), d in st.differences.items():
         if d.n:
             lines.append(f"{b} - {a}: {d.text()}; {d.answer(b, a)}")

@@ -620,6 +620,8 @@ def test_a_later_stage_trains_only_the_arms_of_undecided_comparisons(tmp_path, m
     assert st.complete_stages == 1 and trained == [(1, a) for a in "abcd"]
     assert st.decisions[0].decisions == {("b", "a"): "larger", ("d", "c"): "continue"}
     assert stage_arms(spec, st.decisions) == ["c", "d"]
+    line = next(line for line in status_lines(st) if "still needs" in line)
+    assert "still needs 0.0 h for c, d, the arms of the comparisons AdaStop left" in line
     # stage 2's hours: c's and d's 4 seeds, 5 epochs at 2 s, one population each, one at a time
     assert st.stage_hours(2) == pytest.approx(2 * 5 * 2 / 3600)
 
