@@ -342,12 +342,12 @@ class Status:
         return out
 
     def stage_hours(self, stage: int, launcher: str | None = None) -> float:
-        """Hours the stage's unfinished epochs need on this machine (its arms: :func:`stage_arms`),
-        each run's at its arm's
-        :meth:`epoch_seconds` from where it stands (a population trains its members
-        together: the slowest member; otherwise one after the other), its sweeps
-        ``parallel_sweeps`` at a time (the longer of the longest sweep and their sum shared
-        out); NaN while an arm with epochs left has no time of its own or a sibling's."""
+        """Hours the unfinished epochs of the stage's arms (:func:`stage_arms`) need on this
+        machine, each run's from where it stands at its arm's :meth:`epoch_seconds` (a
+        population trains its members together: the slowest member; otherwise one after the
+        other), its sweeps ``parallel_sweeps`` at a time (the longer of the longest sweep and
+        their sum shared out); NaN while an arm with epochs left has no time of its own or a
+        sibling's."""
         population = (launcher or self.spec.launcher).startswith("population")
         seconds = self.epoch_seconds(stage)
         sweeps = []
