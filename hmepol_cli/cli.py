@@ -468,7 +468,8 @@ def _report(args: list[str]) -> None:
         "--unfinished",
         action="store_true",
         help="use runs that stopped before their last epoch too (runs still going, a replicate "
-        "cut short); every run is then cut at the last epoch all of them wrote",
+        "cut short); each env and wind holding one is then cut at the last epoch all of its "
+        "runs wrote",
     )
     ns = parser.parse_args(args)
     roots = [Path(unquote(r)) for r in ns.runs]  # a path quoted as for Hydra reads the same

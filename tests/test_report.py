@@ -1223,7 +1223,7 @@ def test_report_of_unfinished_runs_cuts_every_run_at_their_common_last_epoch(tmp
     assert pd.read_csv(tmp_path / "finished-only" / "summary.csv").n_seeds.unique().tolist() == [2]
 
     main(["report", str(root), "--out", str(tmp_path / "report"), "--unfinished"])
-    assert "unfinished runs included: every run cut at epoch 11" in capsys.readouterr().out
+    assert "unfinished runs included: slope, wind 0.4 cut at epoch 11" in capsys.readouterr().out
     rows = pd.read_csv(tmp_path / "report" / "summary.csv")
     south = rows[rows.config == "0: south"].iloc[0]
     assert south.n_seeds == 3 and south.final_epochs == "10-11"
@@ -1239,3 +1239,42 @@ def test_report_of_unfinished_runs_cuts_every_run_at_their_common_last_epoch(tmp
     assert south.mean_nats == pytest.approx(expected, rel=1e-9)
     page = html.unescape((tmp_path / "report" / "index.html").read_text())
     assert "cut at epoch 11" in page
+
+
+@pytest.mark.slow  # heavy: make test runs it, make test-fast does not
+def test_report_of_unfinished_runs_cuts_each_wind_on_its_own(tmp_path, capsys):
+    """`--unfinished` cuts only the settings that hold an unfinished run, each at the last epoch
+    its own runs all wrote: a wind whose arms finished keeps its last 10% of 20 epochs (18-19),
+    a wind with a run stopped at 12 epochs compares both arms over epochs 10-11, and a wind
+    whose only run stopped at 16 is cut there, not at the other wind's 11."""
+    root = tmp_path / "runs"
+    for algo in ("mepol", "hmepol"):
+        policy = "recursive" if algo == "hmepol" else "markov"
+        write_run(root, algo=algo, policy=policy, wind=0.05)
+        write_run(root, algo=algo, policy=policy, wind=0.15)
+    for wind, done in ((0.15, 12), (0.25, 16)):
+        stopped = write_run(
+            root, wind=wind, seed=1, epochs=20, epochs_done=done, status="interrupted"
+        )
+        (stopped / "eval" / "final.npz").unlink()
+
+    main(["report", str(root), "--out", str(tmp_path / "report"), "--unfinished"])
+    out = capsys.readouterr().out
+    assert "slope, wind 0.15 at epoch 11; slope, wind 0.25 at epoch 15" in out
+    assert "wind 0.05 at" not in out
+    rows = pd.read_csv(tmp_path / "report" / "summary.csv")
+    south = rows[rows.config == "0: south"]
+    windows = {(r.wind, r.group): r.final_epochs for r in south.itertuples()}
+    assert windows == {
+        (0.05, "Mepol"): "18-19",
+        (0.05, "HMepol"): "18-19",
+        (0.15, "Mepol"): "10-11",
+        (0.15, "HMepol"): "10-11",
+        (0.25, "Mepol"): "14-15",
+    }
+    differences = pd.read_csv(tmp_path / "report" / "differences.csv")
+    at_015 = differences[(differences.wind == 0.15) & (differences.config == "0: south")].iloc[0]
+    assert (at_015.final_epochs_a, at_015.final_epochs_b) == ("10-11", "10-11")
+    # Fig. 5.10 puts the winds on one axis: its caption names each wind's epochs.
+    page = html.unescape((tmp_path / "report" / "index.html").read_text())
+    assert "(wind 0.05: 18-19; wind 0.15: 10-11; wind 0.25: 14-15)" in page

@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from hmepol_cli.errors import UserError
 from hmepol_cli.plots import save_run_plots
 from hmepol_cli.report.figures import make_figures
@@ -22,25 +24,34 @@ from hmepol_cli.report.runs import (
     Run,
     SkippedRunWarning,
     drop_duplicate_seeds,
+    format_wind,
     group_runs,
     merge_identical_runs,
 )
 from hmepol_cli.report.summary import ReportCounts, write_summary
 
 
-def cut_at_common_epoch(runs: list[Run]) -> int | None:
-    """Cut every pre-training run's epochs at the last epoch all of them wrote, so that curves
-    and final values compare the same epochs; that epoch (None when no run has epochs)."""
-    ends = [
-        int(run.epochs.epoch.max()) for run in runs if run.epochs is not None and len(run.epochs)
-    ]
-    if not ends:
-        return None
-    end = min(ends)
+def cut_at_common_epochs(runs: list[Run]) -> dict[str, int]:
+    """Cut the pre-training runs of every setting the report compares (an env and a wind) that
+    holds an unfinished run at the last epoch all of that setting's runs wrote, so that its
+    curves and final values compare the same epochs; a setting whose runs all finished keeps
+    them whole. Returns the cuts, {"corridor, wind 0.15": epoch}, in env and wind order."""
+    settings: dict[tuple[str, float], list[Run]] = {}
     for run in runs:
-        if run.epochs is not None:
+        if run.epochs is not None and len(run.epochs):
+            settings.setdefault((run.env, run.wind), []).append(run)
+    cuts = {}
+    for (env, wind), members in sorted(
+        settings.items(), key=lambda item: (item[0][0], np.nan_to_num(item[0][1], nan=-1.0))
+    ):
+        if all(r.meta.get("status") == "finished" for r in members):
+            continue
+        end = min(int(r.epochs.epoch.max()) for r in members)
+        for run in members:
             run.epochs = run.epochs[run.epochs.epoch <= end]
-    return end
+        name = env if not np.isfinite(wind) else f"{env}, wind {format_wind(wind)}"
+        cuts[name] = end
+    return cuts
 
 
 def run_report(runs_roots: Path | Sequence[Path], out_dir: Path, unfinished: bool = False) -> Path:
@@ -57,8 +68,10 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path, unfinished: boo
     page says which directories were merged.
 
     ``unfinished``: runs that stopped before their last epoch are used too (an interim report of
-    runs still going, a replicate cut short by its time), and every pre-training run is cut at
-    the last epoch all of them wrote, which the page and the command's last line state.
+    runs still going, a replicate cut short by its time). Every env and wind that holds one has
+    its pre-training runs cut at the last epoch all of them wrote, so that the arms compared
+    there share their epochs (:func:`cut_at_common_epochs`); the page and the command's last
+    line state each cut.
     """
     roots = [runs_roots] if isinstance(runs_roots, str | Path) else list(runs_roots)
     roots = [Path(r) for r in roots]
@@ -77,9 +90,7 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path, unfinished: boo
     runs, merged = merge_identical_runs(runs)
     runs, duplicates = drop_duplicate_seeds(runs)
     skipped = sorted(skipped + duplicates, key=lambda s: str(s.path))
-    cut_at = None
-    if unfinished and any(r.meta.get("status") != "finished" for r in runs):
-        cut_at = cut_at_common_epoch(runs)
+    cuts = cut_at_common_epochs(runs) if unfinished else {}
     groups = group_runs(runs)
     finetune_runs = [r for r in runs if r.finetune is not None]
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -92,7 +103,7 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path, unfinished: boo
         skipped=len(skipped),
         figures=len(figures),
         merged=len(merged),
-        cut_at=cut_at,
+        cuts=cuts,
     )
     from hmepol_cli.study import study_report  # a study's folder: its decisions too
 

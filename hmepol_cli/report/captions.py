@@ -207,12 +207,22 @@ def final_bars_caption(groups: list[Group], labels: Iterable[str], every_config:
     )
 
 
-def entropy_against_wind_caption(groups: list[Group], labels: Iterable[str]) -> str:
+def entropy_against_wind_caption(
+    groups: list[Group], labels: Iterable[str], windows: dict[float, str] | None = None
+) -> str:
+    """``windows``: the epochs each wind's final values average, where they differ."""
+    cut = (
+        " Runs still going: each wind compares its arms over the epochs under its tick ("
+        + "; ".join(f"wind {format_wind(w)}: {e}" for w, e in windows.items())
+        + "), so the winds are not at one epoch."
+        if windows
+        else ""
+    )
     return (
         f"Final average entropy (nats; per seed the mean over the last 10% of its epochs) "
         f"against the wind force, {' vs '.join(labels)}. Markers: mean over seeds; "
         f"{spread_text(groups, 'error bars', 'small dots: each seed')}. Dashed: log(free area) "
-        "weighted by p_M."
+        f"weighted by p_M.{cut}"
     )
 
 

@@ -46,6 +46,7 @@ from hmepol_cli.report.frames import (
     at_wind,
     average_bound,
     config_bound,
+    final_windows,
     finetune_curves,
     finetune_frame,
     finetune_winds,
@@ -342,14 +343,17 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
             else f"{style.label} (n={ns[0]})",
         )
     draw_bound(ax, average_bound(groups[0].first))
-    ax.set_xticks(winds, [format_wind(w) for w in winds])
+    windows = final_windows(groups, winds)  # wind by wind, when --unfinished cut some
+    ticks = [format_wind(w) + (f"\nepochs {windows[w]}" if windows else "") for w in winds]
+    ax.set_xticks(winds, ticks, fontsize=8 if windows else None)
     ax.set_xlabel("wind force")
     ax.set_ylabel("final average entropy (nats)")
     ax.grid(alpha=0.3)
-    ax.set_title(f"{env}: final entropy (last 10% of epochs) vs wind force", fontsize=11)
+    window = "last 10% of each wind's epochs, under its tick" if windows else "last 10% of epochs"
+    ax.set_title(f"{env}: final entropy vs wind force\n({window})", fontsize=11)
     ax.legend(fontsize=8)
     path = save(fig, out_dir / f"{env}_entropy_vs_wind.png")
-    caption = captions.entropy_against_wind_caption(groups, shown_labels(styles))
+    caption = captions.entropy_against_wind_caption(groups, shown_labels(styles), windows)
     thesis = THESIS_FIGURES.get((env, "wind"), "")
     return [FigureRecord(path, f"{env}: entropy against wind force", caption, thesis, env)]
 

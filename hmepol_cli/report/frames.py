@@ -39,6 +39,16 @@ def at_wind(groups: list[Group], wind: float) -> list[Group]:
     return [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
 
 
+def final_windows(groups: list[Group], winds: list[float]) -> dict[float, str] | None:
+    """The epochs each wind's final values average ("450-499"; several joined by ", "), or None
+    when every wind averages the same ones. They differ where ``--unfinished`` cut a wind still
+    running, and a figure that puts the winds on one axis must say so."""
+    windows = {
+        w: ", ".join(dict.fromkeys(g.final_epochs() for g in at_wind(groups, w))) for w in winds
+    }
+    return windows if len(set(windows.values())) > 1 else None
+
+
 @dataclass(frozen=True)
 class WindFinals:
     """The final average entropy of one series at each of its winds, in increasing wind."""

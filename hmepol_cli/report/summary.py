@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +48,8 @@ class ReportCounts:
     skipped: int
     figures: int
     merged: int = 0  # directories holding a run found elsewhere too, counted once
-    cut_at: int | None = None  # unfinished runs included: every pre-training run cut here
+    # Unfinished runs included: the env and wind settings cut, each at its epoch.
+    cuts: dict[str, int] = field(default_factory=dict)
 
     @property
     def runs_used(self) -> int:
@@ -60,11 +61,16 @@ class ReportCounts:
             if self.merged
             else ""
         )
-        cut = (
-            f", unfinished runs included: every run cut at epoch {self.cut_at}"
-            if self.cut_at is not None
-            else ""
-        )
+        cut = ""
+        if len(self.cuts) == 1:
+            ((where, epoch),) = self.cuts.items()
+            cut = f", unfinished runs included: {where} cut at epoch {epoch}"
+        elif self.cuts:
+            each = "; ".join(f"{where} at epoch {epoch}" for where, epoch in self.cuts.items())
+            cut = (
+                ", unfinished runs included, each setting's runs cut at the last epoch all of "
+                f"them wrote: {each}"
+            )
         return (
             f"{self.runs_used} runs used ({self.groups} groups), {self.skipped} skipped{merged}, "
             f"{self.figures} figures{cut}"
