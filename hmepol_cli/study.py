@@ -39,6 +39,7 @@ from hmepol_cli.report.comparisons import (
     undecided_arms,
     window_metric,
 )
+from hmepol_cli.report.stats import mean_ci
 from hmepol_cli.run.io import atomic_write_text
 from hmepol_cli.run.layout import COMMANDS
 
@@ -424,6 +425,14 @@ def status(spec: Spec) -> Status:
     return Status(spec, runs, complete, values, decisions, differences)
 
 
+def arm_metric(spec: Spec, runs: dict[int, RunState]) -> dict[int, float]:
+    """The study's metric M of each of an arm's complete runs, {seed: M}: what AdaStop will
+    read of them, shown before their stage is complete (descriptive: no test reads it)."""
+    first, last = spec.window
+    return {s: window_metric(r.table, spec.columns, first, last, r.status == "failed")
+            for s, r in sorted(runs.items()) if r.complete}  # fmt: skip
+
+
 def stage_arms(spec: Spec, decisions: list[Stage]) -> list[str]:
     """The arms the next stage trains, after ``decisions`` (AdaStop's, one per complete
     stage): every arm at stage 1; later the arms of the comparisons still undecided, in the
@@ -495,6 +504,13 @@ def status_lines(st: Status) -> list[str]:
             pace = f", {r.pace:.0f} s/epoch" if math.isfinite(r.pace) else ""
             parts.append(f"{s}: {r.done}/{r.epochs}{pace}")
         lines.append(f"  {name}: " + "; ".join(parts))
+        metric = arm_metric(spec, runs)
+        if metric:
+            ci = mean_ci(list(metric.values()))
+            spread = f" [{ci.low:.3f}, {ci.high:.3f}] (95% t)" if ci.n > 1 else ""
+            seeds = " ".join(str(s) for s in sorted(metric))
+            lines.append(f"    M over its {ci.n} complete {'seed' if ci.n == 1 else 'seeds'} "
+                         f"({seeds}): {ci.mean:.3f}{spread}, descriptive")  # fmt: skip
     lines.append(f"complete stages: {st.complete_stages} of {spec.stages}")
     if not st.finished and not spec.posthoc:
         stage = st.complete_stages + 1

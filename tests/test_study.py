@@ -126,6 +126,14 @@ def test_an_interrupted_stage_continues_with_its_unfinished_seeds(tmp_path):
     assert st.stage_hours(2) == pytest.approx((2 * 2 + 5 * 2) / 3600)
     command = sweep_command(spec, spec.arms["a"], [2, 3])
     assert "seed=2,3" in command and f"hydra.sweep.dir={spec.arms['a'].folder}" in command
+    # Before stage 2 is complete, --status shows each arm's M over its complete seeds: the mean
+    # of c0 and c1 over the window, level + 0.25, with its t-interval over the seeds.
+    lines = status_lines(st)
+    for seeds, levels in (("0 1 2", [1.0, 1.3, 1.0]), ("0 1", [1.0, 1.3])):
+        m = np.array(levels) + 0.25
+        half = stats.t.ppf(0.975, m.size - 1) * m.std(ddof=1) / np.sqrt(m.size)
+        assert (f"    M over its {m.size} complete seeds ({seeds}): {m.mean():.3f} "
+                f"[{m.mean() - half:.3f}, {m.mean() + half:.3f}] (95% t), descriptive") in lines
 
 
 @pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
