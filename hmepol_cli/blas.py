@@ -11,8 +11,9 @@ does through the OpenBLAS that NumPy links (docs/speed.md has the rates measured
   ``matmul`` on zero-copy views of the tensors, the rows in blocks of :data:`BLOCK_ROWS` so
   that each block's bias, ReLU and ReLU-backward run while the block is in cache
   (:func:`mlp`); a single layer is a one-layer stack (:func:`linear`);
-- ``auto``: times both at the widest layer's shape once per machine, and keeps torch unless
-  OpenBLAS measured at least :data:`AUTO_MARGIN` times faster (so an Intel CPU keeps MKL).
+- ``auto``: times both at the widest layer's shape once per machine, taking turns, and keeps
+  torch unless OpenBLAS measured at least :data:`AUTO_MARGIN` times faster (so an Intel CPU
+  keeps MKL).
 
 OpenBLAS runs only where it can: float32 tensors on a CPU, outside ``torch.autocast``
 (precision=bf16 keeps torch's lowered products) and outside ``torch.vmap`` (a CPU population
@@ -246,20 +247,36 @@ def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> 
 
 
 # -- choosing ---------------------------------------------------------------------------------
-def layer_seconds(backend: str, rows: int, width: int, repeats: int = 3) -> float:
-    """Best-of-``repeats`` seconds of one hidden layer's forward and backward products (rows x
-    width @ width x width, then both gradients) through ``backend``."""
+def layer_seconds(rows: int, width: int, repeats: int = 5) -> dict[str, float]:
+    """{library: best-of-``repeats`` seconds} of one hidden layer's forward and backward products
+    (rows x width @ width x width, then both gradients) through each library.
+
+    The libraries take turns (torch, OpenBLAS, torch, ...), so that a burst of load from other
+    processes slows both rather than one: any burst of up to 2 x ``repeats`` - 2 consecutive
+    timings leaves each library one it did not touch. Timed one library after the other, a
+    measurement made beside a running study once put OpenBLAS at 0.24x torch's speed at a
+    shape where, on the idle machine, it was 1.5x faster; the choice is kept for the machine,
+    so one such measurement would have slowed every later run."""
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(rows, width, generator=gen, requires_grad=True)
     weight = torch.randn(width, width, generator=gen, requires_grad=True)
     bias = torch.zeros(width, requires_grad=True)
-    best = float("inf")
-    with using(backend):
-        for _ in range(repeats + 1):  # the first warms the library's buffers up
-            start = time.perf_counter()
-            linear(x, weight, bias).sum().backward()
-            best = min(best, time.perf_counter() - start)
+    best = dict.fromkeys(BACKENDS, float("inf"))
+    for turn in range(repeats + 1):
+        for backend in BACKENDS:
+            seconds = _product_seconds(backend, x, weight, bias)
+            if turn:  # the first turn warms each library's buffers up
+                best[backend] = min(best[backend], seconds)
     return best
+
+
+def _product_seconds(
+    backend: str, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
+) -> float:
+    with using(backend):
+        start = time.perf_counter()
+        linear(x, weight, bias).sum().backward()
+        return time.perf_counter() - start
 
 
 def _cache_path() -> Path:
@@ -308,7 +325,7 @@ def auto_choice(rows: int, width: int) -> tuple[str, dict]:
         cache = {}
     seconds = cache.get(key)
     if not (isinstance(seconds, dict) and set(seconds) == set(BACKENDS)):
-        seconds = {b: layer_seconds(b, rows, width) for b in BACKENDS}
+        seconds = layer_seconds(rows, width)
         cache[key] = seconds
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -304,9 +304,9 @@ def test_auto_chooses_openblas_only_with_a_margin_and_measures_once(tmp_path, mo
     timings = {"torch": 1.0, "openblas": 1.0 / (blas.AUTO_MARGIN * 0.99)}
     measured = []
 
-    def fake(backend, rows, width, repeats=3):
-        measured.append(backend)
-        return timings[backend]
+    def fake(rows, width, repeats=5):
+        measured.extend(blas.BACKENDS)
+        return dict(timings)
 
     monkeypatch.setattr(blas, "layer_seconds", fake)
     assert blas.resolve("auto", "cpu", torch.float32, 5000, 64)[0] == "torch"
@@ -317,6 +317,36 @@ def test_auto_chooses_openblas_only_with_a_margin_and_measures_once(tmp_path, mo
     assert choice == "openblas" and "OpenBLAS" in reason
     assert blas.resolve("auto", "cuda", torch.float32, 6000, 64)[0] == "torch"
     assert blas.resolve("openblas", "cpu", torch.float64, 6000, 64)[0] == "torch"
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    repeats=st.integers(2, 6),
+    start=st.integers(0, 13),
+    length=st.integers(0, 10),
+    faster=st.sampled_from(["torch", "openblas"]),
+)
+def test_auto_times_both_libraries_in_turn_so_a_burst_of_load_cannot_choose(
+    repeats, start, length, faster
+):
+    """Timings alternate between the libraries, so a burst of load (every product 10x slower)
+    over up to 2 x repeats - 2 consecutive timings leaves each library a clean one: its best is
+    its true time, whichever library is faster and wherever the burst falls. One library's
+    timings all in a row would hand a burst of ``repeats`` of them to it alone."""
+    length = min(length, 2 * repeats - 2)
+    true = {"torch": 1.0, "openblas": 1.0}
+    true["torch" if faster == "openblas" else "openblas"] = 1.5
+    calls = []
+
+    def timed(backend, x, weight, bias):
+        calls.append(backend)
+        burst = start <= len(calls) - 1 < start + length
+        return true[backend] * (10.0 if burst else 1.0)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(blas, "_product_seconds", timed)
+        assert blas.layer_seconds(8, 4, repeats) == true
+    assert calls.count("torch") == calls.count("openblas") == repeats + 1
 
 
 @pytest.mark.parametrize("command", ["train", "finetune"])
