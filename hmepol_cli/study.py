@@ -524,6 +524,12 @@ def status_lines(st: Status) -> list[str]:
     for (b, a), d in st.differences.items():
         if d.n:
             lines.append(f"{b} - {a}: {d.text()}; {d.answer(b, a)}")
+            continue
+        early = paired(arm_metric(spec, st.runs[a]), arm_metric(spec, st.runs[b]), spec.half_width)
+        if early.n >= 2:  # both arms have complete seeds before their stage is: descriptive
+            lines.append(f"{b} - {a} over the {early.n} seeds both have complete: "
+                         f"{early.text()}, descriptive (the test is AdaStop's, at the stage's "
+                         "end)")  # fmt: skip
     if spec.kept_stages:
         seeds = [s for s in spec.registered_seeds if s < st.complete_stages * spec.n]
         for b, a in spec.comparisons:

@@ -134,6 +134,29 @@ def test_an_interrupted_stage_continues_with_its_unfinished_seeds(tmp_path):
         half = stats.t.ppf(0.975, m.size - 1) * m.std(ddof=1) / np.sqrt(m.size)
         assert (f"    M over its {m.size} complete seeds ({seeds}): {m.mean():.3f} "
                 f"[{m.mean() - half:.3f}, {m.mean() + half:.3f}] (95% t), descriptive") in lines
+    # Stage 1 is complete: b - a is the comparison's own line, not a descriptive one.
+    assert not any("descriptive (the test" in line for line in lines)
+
+
+def test_status_pairs_the_seeds_two_arms_have_complete_before_their_stage_is(tmp_path):
+    """Stage 1 not complete (b's seed 3 still running): b - a over seeds 0-2, paired by hand,
+    exact sign-flip p 2/8 (every difference positive), labelled descriptive."""
+    spec = load_spec(spec_file(tmp_path, n=4, stages=2))
+    for s, (a, b) in enumerate([(1.0, 1.5), (1.1, 1.4), (1.3, 1.9), (1.2, 1.2)]):
+        make_run(spec.arms["a"].folder, s, a, 5)
+        make_run(spec.arms["b"].folder, s, b, 5 if s < 3 else 2)
+    st = status(spec)
+    assert st.complete_stages == 0
+    d = np.array([0.5, 0.3, 0.6])
+    half = stats.t.ppf(0.975, 2) * d.std(ddof=1) / np.sqrt(3)
+    line = (f"b - a over the 3 seeds both have complete: {d.mean():+.3f} "
+            f"[{d.mean() - half:+.3f}, {d.mean() + half:+.3f}], sign-flip p 0.25 (n = 3), "
+            "descriptive (the test is AdaStop's, at the stage's end)")  # fmt: skip
+    assert line in status_lines(st)
+    make_run(spec.arms["b"].folder, 1, 1.4, 2)  # seed 1 back to running: 2 seeds, 0 and 2
+    assert any(x.startswith("b - a over the 2 seeds") for x in status_lines(status(spec)))
+    make_run(spec.arms["b"].folder, 2, 1.9, 2)  # one seed left: no interval, no line
+    assert not any(x.startswith("b - a") for x in status_lines(status(spec)))
 
 
 @pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
