@@ -1246,13 +1246,14 @@ def test_report_of_unfinished_runs_cuts_each_wind_on_its_own(tmp_path, capsys):
     """`--unfinished` cuts only the settings that hold an unfinished run, each at the last epoch
     its own runs all wrote: a wind whose arms finished keeps its last 10% of 20 epochs (18-19),
     a wind with a run stopped at 12 epochs compares both arms over epochs 10-11, and a wind
-    whose only run stopped at 16 is cut there, not at the other wind's 11."""
+    whose only run stopped at 16 is cut there, not at the other wind's 11 (one stopped at 2
+    averages epoch 1 alone, "1" in Fig. 5.10's caption)."""
     root = tmp_path / "runs"
     for algo in ("mepol", "hmepol"):
         policy = "recursive" if algo == "hmepol" else "markov"
         write_run(root, algo=algo, policy=policy, wind=0.05)
         write_run(root, algo=algo, policy=policy, wind=0.15)
-    for wind, done in ((0.15, 12), (0.25, 16)):
+    for wind, done in ((0.15, 12), (0.25, 16), (0.35, 2)):
         stopped = write_run(
             root, wind=wind, seed=1, epochs=20, epochs_done=done, status="interrupted"
         )
@@ -1260,7 +1261,7 @@ def test_report_of_unfinished_runs_cuts_each_wind_on_its_own(tmp_path, capsys):
 
     main(["report", str(root), "--out", str(tmp_path / "report"), "--unfinished"])
     out = capsys.readouterr().out
-    assert "slope, wind 0.15 at epoch 11; slope, wind 0.25 at epoch 15" in out
+    assert "slope, wind 0.15 at epoch 11; slope, wind 0.25 at epoch 15; slope, wind 0.35 at" in out
     assert "wind 0.05 at" not in out
     rows = pd.read_csv(tmp_path / "report" / "summary.csv")
     south = rows[rows.config == "0: south"]
@@ -1271,10 +1272,11 @@ def test_report_of_unfinished_runs_cuts_each_wind_on_its_own(tmp_path, capsys):
         (0.15, "Mepol"): "10-11",
         (0.15, "HMepol"): "10-11",
         (0.25, "Mepol"): "14-15",
+        (0.35, "Mepol"): "1-1",  # the last 10% of 2 epochs
     }
     differences = pd.read_csv(tmp_path / "report" / "differences.csv")
     at_015 = differences[(differences.wind == 0.15) & (differences.config == "0: south")].iloc[0]
     assert (at_015.final_epochs_a, at_015.final_epochs_b) == ("10-11", "10-11")
     # Fig. 5.10 puts the winds on one axis: its caption names each wind's epochs.
     page = html.unescape((tmp_path / "report" / "index.html").read_text())
-    assert "(wind 0.05: 18-19; wind 0.15: 10-11; wind 0.25: 14-15)" in page
+    assert "(wind 0.05: 18-19; wind 0.15: 10-11; wind 0.25: 14-15; wind 0.35: 1)" in page

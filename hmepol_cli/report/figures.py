@@ -46,6 +46,7 @@ from hmepol_cli.report.frames import (
     at_wind,
     average_bound,
     config_bound,
+    epochs_label,
     final_windows,
     finetune_curves,
     finetune_frame,
@@ -204,7 +205,7 @@ def entropy_curves_by_config(env: str, groups: list[Group], out_dir: Path) -> li
                 ax.set_ylabel("entropy (nats)")
             ax.grid(alpha=0.3)
     fig.suptitle(
-        f"{env}: entropy per epoch in each configuration {spread_title(groups)}"
+        f"{env}: entropy per epoch in each configuration\n{spread_title(groups)}"
         + rules_title(groups)
     )
     figure_legend(fig, axes)
@@ -222,6 +223,7 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
     styles = series_styles(groups)
     winds = winds_of(groups)
     several = len(winds) > 1
+    windows = final_windows(groups, winds)
     names = groups[0].configuration_names
     configurations: list[int | None] = [None] + list(
         range(len(names) if len(names) <= MAX_CONFIG_BARS else 1)
@@ -293,7 +295,8 @@ def final_entropy_bars(env: str, groups: list[Group], out_dir: Path) -> list[Fig
         ticks = ["average"] + [f"config {c}\n{names[c]}" for c in configurations[1:]]
         ax.set_xticks(range(len(configurations)), ticks)
         ax.set_ylabel("final entropy (nats)")
-        ax.set_title(f"wind {format_wind(wind)}" if several else "")
+        cut = f" ({epochs_label(windows[wind])})" if windows else ""  # --unfinished cut some
+        ax.set_title(f"wind {format_wind(wind)}{cut}" if several else "")
         ax.grid(axis="y", alpha=0.3)
     # One range for every wind, as the panels share their y-axis.
     finite = np.array([v for v in shown_values if np.isfinite(v)])
@@ -344,7 +347,7 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
         )
     draw_bound(ax, average_bound(groups[0].first))
     windows = final_windows(groups, winds)  # wind by wind, when --unfinished cut some
-    ticks = [format_wind(w) + (f"\nepochs {windows[w]}" if windows else "") for w in winds]
+    ticks = [format_wind(w) + (f"\n{epochs_label(windows[w])}" if windows else "") for w in winds]
     ax.set_xticks(winds, ticks, fontsize=8 if windows else None)
     ax.set_xlabel("wind force")
     ax.set_ylabel("final average entropy (nats)")

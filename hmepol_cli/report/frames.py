@@ -8,6 +8,7 @@ summary.py's tables read the same frames, so that a figure and its table show on
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,11 @@ def at_wind(groups: list[Group], wind: float) -> list[Group]:
     return [g for g in groups if g.wind == wind or (np.isnan(g.wind) and np.isnan(wind))]
 
 
+def epochs_label(window: str) -> str:
+    """ "epochs 450-499", or "epoch 8" for one."""
+    return f"epoch {window}" if window.isdigit() else f"epochs {window}"
+
+
 def final_windows(groups: list[Group], winds: list[float]) -> dict[float, str] | None:
     """The epochs each wind's final values average ("450-499"; several joined by ", "), or None
     when every wind averages the same ones. They differ where ``--unfinished`` cut a wind still
@@ -46,7 +52,9 @@ def final_windows(groups: list[Group], winds: list[float]) -> dict[float, str] |
     windows = {
         w: ", ".join(dict.fromkeys(g.final_epochs() for g in at_wind(groups, w))) for w in winds
     }
-    return windows if len(set(windows.values())) > 1 else None
+    if len(set(windows.values())) == 1:
+        return None
+    return {w: re.sub(r"\b(\d+)-\1\b", r"\1", text) for w, text in windows.items()}  # "8-8": "8"
 
 
 @dataclass(frozen=True)
