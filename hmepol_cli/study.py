@@ -565,13 +565,19 @@ def study_report(root: Path, out_dir: Path) -> Path | None:
     text = "\n".join([
         f"# Study {spec.name}", "",
         f"Pre-registered {written.get('written', '?')} at commit {written.get('commit', '?')}.",
-        "", *[f"- {line.strip()}" for line in lines[1:]], "",
+        "", *[_bullet(line) for line in lines[1:]], "",
         "\"equal\" means no difference detected at the last stage, not equivalence "
         "(docs/studies.md).", "",
     ])  # fmt: skip
     out = Path(out_dir) / "study.md"
     out.write_text(text)
     return out
+
+
+def _bullet(line: str) -> str:
+    """A --status line as a Markdown bullet, an arm's own lines (indented 4) nested under it."""
+    nested = len(line) - len(line.lstrip(" ")) >= 4
+    return f"{'  ' if nested else ''}- {line.strip()}"
 
 
 def code_commit() -> str:

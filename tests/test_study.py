@@ -249,6 +249,8 @@ def test_a_tiny_study_runs_is_interrupted_and_continues_to_its_decision(tmp_path
     study_md = (tmp_path / "report" / "study.md").read_text()
     stages = [d.number for d in st.decisions]
     assert all(f"AdaStop, stage {k} " in study_md for k in stages)
+    # each arm's M nested under the arm's own bullet
+XX
     assert "study.md" in json.loads((tmp_path / "report" / "report.json").read_text())["files"]
 
 
