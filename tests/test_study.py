@@ -250,7 +250,8 @@ def test_a_tiny_study_runs_is_interrupted_and_continues_to_its_decision(tmp_path
     stages = [d.number for d in st.decisions]
     assert all(f"AdaStop, stage {k} " in study_md for k in stages)
     # each arm's M nested under the arm's own bullet
-XX
+    nested = re.findall(r"^- \w+: 0: .*\n  - M over its \d+ complete seeds", study_md, re.M)
+    assert len(nested) == 2
     assert "study.md" in json.loads((tmp_path / "report" / "report.json").read_text())["files"]
 
 
