@@ -24,10 +24,11 @@ from hmepol_cli.cli import main
 from hmepol_cli.envs import make_world
 from hmepol_cli.errors import UserError
 from hmepol_cli.plots import WorldMap
-from hmepol_cli.report import SkippedRunWarning, run_report
+from hmepol_cli.report import SkippedRunWarning, cut_at_common_epochs, run_report
 from hmepol_cli.report.loading import discover_runs
 from hmepol_cli.report.runs import (
     MapUnknownWarning,
+    Run,
     drop_duplicate_seeds,
     group_runs,
     varying_keys,
@@ -1239,6 +1240,19 @@ def test_report_of_unfinished_runs_cuts_every_run_at_their_common_last_epoch(tmp
     assert south.mean_nats == pytest.approx(expected, rel=1e-9)
     page = html.unescape((tmp_path / "report" / "index.html").read_text())
     assert "cut at epoch 11" in page
+
+
+def test_a_world_without_wind_is_one_setting_when_cut():
+    """Runs of a world without wind (NaN however it was read) are cut together, at the last
+    epoch all of them wrote, and named by the world alone."""
+    def run(done: int, status: str) -> Run:
+        table = pd.DataFrame({"epoch": range(done), "entropy": np.zeros(done)})
+        meta = {"env": "multigrid", "status": status}  # each run its own NaN object
+        return Run(Path(f"r{done}"), {"env.wind": float("nan")}, meta, epochs=table)
+
+    runs = [run(10, "finished"), run(7, "interrupted"), run(9, "interrupted")]
+    assert cut_at_common_epochs(runs) == {"multigrid": 6}
+    assert [int(r.epochs.epoch.max()) for r in runs] == [6, 6, 6]
 
 
 @pytest.mark.slow  # heavy: make test runs it, make test-fast does not

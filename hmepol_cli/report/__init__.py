@@ -36,20 +36,21 @@ def cut_at_common_epochs(runs: list[Run]) -> dict[str, int]:
     holds an unfinished run at the last epoch all of that setting's runs wrote, so that its
     curves and final values compare the same epochs; a setting whose runs all finished keeps
     them whole. Returns the cuts, {"corridor, wind 0.15": epoch}, in env and wind order."""
-    settings: dict[tuple[str, float], list[Run]] = {}
+    settings: dict[tuple[str, float | None], list[Run]] = {}
     for run in runs:
         if run.epochs is not None and len(run.epochs):
-            settings.setdefault((run.env, run.wind), []).append(run)
+            wind = run.wind if np.isfinite(run.wind) else None  # no wind: one key, not NaNs
+            settings.setdefault((run.env, wind), []).append(run)
     cuts = {}
     for (env, wind), members in sorted(
-        settings.items(), key=lambda item: (item[0][0], np.nan_to_num(item[0][1], nan=-1.0))
+        settings.items(), key=lambda item: (item[0][0], -1.0 if item[0][1] is None else item[0][1])
     ):
         if all(r.meta.get("status") == "finished" for r in members):
             continue
         end = min(int(r.epochs.epoch.max()) for r in members)
         for run in members:
             run.epochs = run.epochs[run.epochs.epoch <= end]
-        name = env if not np.isfinite(wind) else f"{env}, wind {format_wind(wind)}"
+        name = env if wind is None else f"{env}, wind {format_wind(wind)}"
         cuts[name] = end
     return cuts
 
