@@ -293,6 +293,8 @@ class Status:
     values: dict[str, dict[int, float]]  # per arm, per seed of the complete stages
     decisions: list[Stage]
     differences: dict[tuple[str, str], Paired]
+    # per arm, per complete run, complete stage or not (descriptive before its stage is)
+    metrics: dict[str, dict[int, float]] = field(default_factory=dict)
 
     @property
     def finished(self) -> bool:
@@ -400,7 +402,7 @@ def status(spec: Spec) -> Status:
     the arms it trains have every seed of it: all arms at stage 1, later the arms of the
     comparisons AdaStop left undecided (:func:`stage_arms`)."""
     runs = {name: arm_runs(arm, spec.epochs) for name, arm in spec.arms.items()}
-    first, last = spec.window
+    metrics = {name: arm_metric(spec, arm) for name, arm in runs.items()}
     values: dict[str, dict[int, float]] = {a: {} for a in runs}
     decisions: list[Stage] = []
     complete = 0
@@ -412,8 +414,7 @@ def status(spec: Spec) -> Status:
         complete = stage
         for a in arms:
             for s in seeds:
-                values[a][s] = window_metric(runs[a][s].table, spec.columns, first, last,
-                                             runs[a][s].status == "failed")  # fmt: skip
+                values[a][s] = metrics[a][s]
         decisions = adastop(
             {a: [values[a][s] for s in sorted(values[a])] for a in runs}, spec.n, spec.stages,
             spec.comparisons, spec.alpha, spec.beta, spec.permutations, spec.adastop_seed,
@@ -422,7 +423,7 @@ def status(spec: Spec) -> Status:
             break
     differences = {(b, a): paired(values[a], values[b], spec.half_width)
                    for b, a in spec.comparisons}  # fmt: skip
-    return Status(spec, runs, complete, values, decisions, differences)
+    return Status(spec, runs, complete, values, decisions, differences, metrics)
 
 
 def arm_metric(spec: Spec, runs: dict[int, RunState]) -> dict[int, float]:
@@ -504,7 +505,7 @@ def status_lines(st: Status) -> list[str]:
             pace = f", {r.pace:.0f} s/epoch" if math.isfinite(r.pace) else ""
             parts.append(f"{s}: {r.done}/{r.epochs}{pace}")
         lines.append(f"  {name}: " + "; ".join(parts))
-        metric = arm_metric(spec, runs)
+        metric = st.metrics[name]
         if metric:
             ci = mean_ci(list(metric.values()))
             spread = f" [{ci.low:.3f}, {ci.high:.3f}] (95% t)" if ci.n > 1 else ""
@@ -525,7 +526,7 @@ def status_lines(st: Status) -> list[str]:
         if d.n:
             lines.append(f"{b} - {a}: {d.text()}; {d.answer(b, a)}")
             continue
-        early = paired(arm_metric(spec, st.runs[a]), arm_metric(spec, st.runs[b]), spec.half_width)
+        early = paired(st.metrics[a], st.metrics[b], spec.half_width)
         if early.n >= 2:  # both arms have complete seeds before their stage is: descriptive
             lines.append(f"{b} - {a} over the {early.n} seeds both have complete: "
                          f"{early.text()}, descriptive (the test is AdaStop's, at the stage's "

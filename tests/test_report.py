@@ -25,6 +25,7 @@ from hmepol_cli.envs import make_world
 from hmepol_cli.errors import UserError
 from hmepol_cli.plots import WorldMap
 from hmepol_cli.report import SkippedRunWarning, cut_at_common_epochs, run_report
+from hmepol_cli.report.frames import epochs_label
 from hmepol_cli.report.loading import discover_runs
 from hmepol_cli.report.runs import (
     MapUnknownWarning,
@@ -1240,6 +1241,12 @@ def test_report_of_unfinished_runs_cuts_every_run_at_their_common_last_epoch(tmp
     assert south.mean_nats == pytest.approx(expected, rel=1e-9)
     page = html.unescape((tmp_path / "report" / "index.html").read_text())
     assert "cut at epoch 11" in page
+
+
+def test_a_figure_names_one_epoch_or_a_range():
+    assert epochs_label("8") == "epoch 8"
+    assert epochs_label("450-499") == "epochs 450-499"
+    assert epochs_label("450-499, 8") == "epochs 450-499, 8"
 
 
 def test_a_world_without_wind_is_one_setting_when_cut():
