@@ -914,6 +914,30 @@ def test_every_entropy_panel_shows_its_whole_curve(tmp_path, drawn_figures):
         assert all(low <= bar.get_height() <= high for bar in ax.patches), ax.get_title()
 
 
+def test_the_entropy_against_wind_shows_its_bound_and_keeps_its_legend_off_the_bars(
+    tmp_path, drawn_figures
+):
+    # Wind 0.4's seeds end just under the bound log(3.04) = 1.11 nats: autoscaled to the
+    # error bars, the axes stopped within a hair of the dashed bound, which the frame hid (as
+    # in the wind sweep's figure), and a legend inside the axes covered error bars.
+    for wind, top in ((0.05, 0.5), (0.4, 1.1)):
+        for seed in (0, 1, 2):
+            final = top - 0.01 * seed
+            write_run(tmp_path / "runs", wind=wind, seed=seed, final=final,
+                      config_finals=(final, final))  # fmt: skip
+    run_report(tmp_path / "runs", tmp_path / "report")
+    fig = drawn_figures["slope_entropy_vs_wind.png"]
+    [ax] = fig.axes
+    low, high = ax.get_ylim()
+    [bound] = [line for line in ax.get_lines() if line.get_linestyle() == "--"]
+    assert bound.get_ydata()[0] == pytest.approx(math.log(3.04))
+    assert bound.get_ydata()[0] < high - 0.03 * (high - low)
+    assert ax.get_legend() is None
+    [legend] = fig.legends
+    texts = [t.get_text() for t in legend.get_texts()]
+    assert texts == ["log(free area) = 1.11 nats", "Mepol (n=3)"]
+
+
 def test_a_run_of_one_epoch_is_drawn_as_a_point(tmp_path, drawn_figures):
     for seed in (0, 1):
         write_run(tmp_path / "runs", seed=seed, epochs=1)  # entropy 0 at epoch 0
@@ -1252,6 +1276,7 @@ def test_a_figure_names_one_epoch_or_a_range():
 def test_a_world_without_wind_is_one_setting_when_cut():
     """Runs of a world without wind (NaN however it was read) are cut together, at the last
     epoch all of them wrote, and named by the world alone."""
+
     def run(done: int, status: str) -> Run:
         table = pd.DataFrame({"epoch": range(done), "entropy": np.zeros(done)})
         meta = {"env": "multigrid", "status": status}  # each run its own NaN object

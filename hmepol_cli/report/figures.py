@@ -320,7 +320,7 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
     """Final average entropy against the wind force, one line per algorithm (5.10)."""
     styles = series_styles(groups)
     winds = winds_of(groups)
-    fig = new_figure(5.5, 3.8)
+    fig = new_figure(5.5, 4.2)
     ax = fig.subplots()
     span = (max(winds) - min(winds)) or 1.0
     for s, (label, style) in enumerate(styles.items()):
@@ -345,7 +345,11 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
             if ns.min() != ns.max()
             else f"{style.label} (n={ns[0]})",
         )
-    draw_bound(ax, average_bound(groups[0].first))
+    bound = average_bound(groups[0].first)
+    draw_bound(ax, bound)
+    low, high = ax.get_ylim()
+    if np.isfinite(bound) and bound > high - 0.03 * (high - low):  # off the frame's top edge
+        ax.set_ylim(low, bound + 0.06 * (high - low))
     windows = final_windows(groups, winds)  # wind by wind, when --unfinished cut some
     ticks = [format_wind(w) + (f"\n{epochs_label(windows[w])}" if windows else "") for w in winds]
     ax.set_xticks(winds, ticks, fontsize=8 if windows else None)
@@ -354,7 +358,7 @@ def entropy_against_wind(env: str, groups: list[Group], out_dir: Path) -> list[F
     ax.grid(alpha=0.3)
     window = "last 10% of each wind's epochs, under its tick" if windows else "last 10% of epochs"
     ax.set_title(f"{env}: final entropy vs wind force\n({window})", fontsize=11)
-    ax.legend(fontsize=8)
+    figure_legend(fig, ax)  # below the axes: inside, it hid the error bars it fell on
     path = save(fig, out_dir / f"{env}_entropy_vs_wind.png")
     caption = captions.entropy_against_wind_caption(groups, shown_labels(styles), windows)
     thesis = THESIS_FIGURES.get((env, "wind"), "")
