@@ -31,6 +31,20 @@ def cpu_name() -> str:
 
 
 @functools.cache
+def cpu_model() -> str:
+    """The processor's model name with its x86 family and model numbers, which tell apart the
+    CPUs a virtual machine names alike: ``Intel(R) Xeon(R) Processor (family 6, model 167)``."""
+    fields = dict(
+        (key.strip(), value.strip())
+        for key, _, value in (line.partition(":") for line in _cpuinfo_lines())
+        if key.strip() in ("cpu family", "model")
+    )
+    if "cpu family" in fields and "model" in fields:
+        return f"{cpu_name()} (family {fields['cpu family']}, model {fields['model']})"
+    return cpu_name()
+
+
+@functools.cache
 def cpu_flags() -> frozenset[str]:
     """The instruction-set flags the kernel lists (x86 ``flags``, Arm ``Features``); empty
     where there is no /proc/cpuinfo."""

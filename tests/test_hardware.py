@@ -28,6 +28,10 @@ Features\t: fp asimd evtstrm aes sve bf16 i8mm
 """
 
 
+# what reads /proc/cpuinfo once and keeps it
+CACHED = (hardware.cpu_name, hardware.cpu_model, hardware.cpu_flags, precision.auto_precision)
+
+
 @pytest.fixture
 def cpu(tmp_path, monkeypatch):
     """Pretend /proc/cpuinfo reads ``text``; the caches forget the real one."""
@@ -36,12 +40,42 @@ def cpu(tmp_path, monkeypatch):
         path = tmp_path / "cpuinfo"
         path.write_text(text)
         monkeypatch.setattr(hardware, "CPUINFO", path)
-        for cached in (hardware.cpu_name, hardware.cpu_flags, precision.auto_precision):
+        for cached in CACHED:
             cached.cache_clear()
 
     yield pretend
-    for cached in (hardware.cpu_name, hardware.cpu_flags, precision.auto_precision):
+    for cached in CACHED:
         cached.cache_clear()
+
+
+GENERIC_XEON = """processor\t: 0
+vendor_id\t: GenuineIntel
+cpu family\t: 6
+model\t\t: 167
+model name\t: Intel(R) Xeon(R) Processor
+flags\t\t: fpu avx2 avx512f
+processor\t: 1
+vendor_id\t: GenuineIntel
+cpu family\t: 6
+model\t\t: 167
+model name\t: Intel(R) Xeon(R) Processor
+"""
+
+
+@pytest.mark.parametrize(
+    "text, model",
+    [
+        # a virtual machine's generic name: the family and model numbers tell its CPUs apart
+        (GENERIC_XEON, "Intel(R) Xeon(R) Processor (family 6, model 167)"),
+        (AVX2_EPYC, "AMD EPYC 7B13"),  # no numbers listed: the name alone
+        (NEOVERSE, "aarch64"),
+    ],
+)
+def test_the_cpu_model_run_json_records_names_family_and_model(cpu, monkeypatch, text, model):
+    monkeypatch.setattr(hardware.platform, "processor", lambda: "")
+    monkeypatch.setattr(hardware.platform, "machine", lambda: "aarch64")
+    cpu(text)
+    assert hardware.cpu_model() == model
 
 
 @pytest.mark.parametrize(

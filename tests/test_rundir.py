@@ -105,9 +105,36 @@ def test_run_json_records_provenance_and_the_owner(tmp_path):
     directory.close()
     p = info["provenance"]
     assert p["torch"] == torch.__version__ and p["host"] == socket.gethostname()
-    assert {"numpy", "scipy", "hmepol", "threads", "device", "command"} <= set(p)
+    assert {"numpy", "scipy", "hmepol", "threads", "device", "command", "cpu"} <= set(p)
+    assert p["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     assert info["owner"]["pid"] == os.getpid() and info["status"] == "running"
     assert len(info["identity"]) == 16
+    assert [m["from_epoch"] for m in info["machines"]] == [0]
+    assert info["machines"][0]["cpu"] == p["cpu"] and info["machines"][0]["device"] == "cpu"
+
+
+def test_run_json_keeps_each_machine_a_run_was_continued_on(tmp_path, monkeypatch):
+    """A run trained for 7 epochs on one CPU, continued on another for 5, and again on the
+    second: machines names both, from the epochs they took it up from; provenance the last."""
+    from hmepol_cli import hardware
+
+    cfg, path = compose_cfg(), tmp_path / "run"
+
+    def session(cpu: str, epochs_done: int) -> dict:
+        monkeypatch.setattr(hardware, "cpu_model", lambda: cpu)
+        directory = RunDirectory(path, cfg).open("cpu")
+        directory.update(epochs_done=epochs_done)
+        directory.close()
+        return directory.info()
+
+    session("AMD EPYC 7B13", 7)
+    session("Intel(R) Xeon(R) Processor (family 6, model 167)", 12)
+    info = session("Intel(R) Xeon(R) Processor (family 6, model 167)", 15)
+    assert [(m["from_epoch"], m["cpu"]) for m in info["machines"]] == [
+        (0, "AMD EPYC 7B13"),
+        (7, "Intel(R) Xeon(R) Processor (family 6, model 167)"),
+    ]
+    assert info["provenance"]["cpu"] == "Intel(R) Xeon(R) Processor (family 6, model 167)"
 
 
 # ------------------------------------------------------------------ files

@@ -7,8 +7,9 @@ A run directory holds::
     run.json             kind (train | finetune), status (running | finished | failed), for a
                          failure its reason, epoch and last finite values; epochs_done; identity
                          (hash of the config); facts of the world (free areas, edge, world_map);
-                         the backtracking rule; a fine-tuning's return_bounds; provenance; the
-                         owner. The report reads these instead of the training code
+                         the backtracking rule; a fine-tuning's return_bounds; provenance (the
+                         latest invocation's); machines (each machine trained on, from which
+                         epoch); the owner. The report reads these instead of the training code
     commands.log         one line per invocation: time, host, pid, command line
     epochs.csv           train: one row per epoch
     batches.csv          train: one row per mini-batch (epoch, batch, config, entropy)

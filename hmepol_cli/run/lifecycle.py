@@ -35,6 +35,10 @@ if TYPE_CHECKING:  # a device is only passed on: torch is not needed to read a r
     import torch
 
 
+# What names a machine in run.json's ``machines`` (a new entry when one of them changes)
+MACHINE_KEYS = ("host", "cpu", "cpu_capability", "device", "gpu")
+
+
 class RunDirectory:
     """A run directory this process writes: locked, identified, its invocations logged.
 
@@ -74,12 +78,14 @@ class RunDirectory:
                     f"{timestamp()} {socket.gethostname()} pid={os.getpid()} "
                     f"{provenance()['command']}\n"
                 )
+            made_by = provenance(device)
             self.update(
                 kind=self.kind,
                 status="running",
                 identity=identity_hash(self.cfg),
                 owner=self.lock.owner,
-                provenance=provenance(device),
+                provenance=made_by,
+                machines=machines_after(self.info(), made_by),
                 failure=None,
             )
         except BaseException:
@@ -126,6 +132,18 @@ class RunDirectory:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def machines_after(info: dict[str, Any], made_by: dict[str, Any]) -> list[dict[str, Any]]:
+    """run.json's ``machines``: each machine a run has trained on (host, CPU, device) and the
+    epoch it took the run up from, one entry per change of machine. A run continued elsewhere
+    keeps the record of where its earlier epochs were made; ``provenance`` holds the latest."""
+    machine = {key: made_by.get(key) for key in MACHINE_KEYS}
+    machines = list(info.get("machines") or [])
+    if machines and {key: machines[-1].get(key) for key in MACHINE_KEYS} == machine:
+        return machines
+    start = {"from_epoch": int(info.get("epochs_done", 0)), "at": timestamp()}
+    return [*machines, {**start, **machine}]
 
 
 @contextlib.contextmanager

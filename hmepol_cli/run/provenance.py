@@ -1,6 +1,6 @@
 """What a run is and where it was made: its identity (the config without the keys a
 continuation may change, and its hash), the config flattened to hashable values, and the
-provenance run.json records (versions, host, command, the source's git state)."""
+provenance run.json records (versions, host, CPU, command, the source's git state)."""
 
 from __future__ import annotations
 
@@ -102,11 +102,11 @@ def identity_differences(started: DictConfig | dict, now: DictConfig | dict) -> 
 
 # ------------------------------------------------------------------------------ provenance
 def provenance(device: torch.device | str | None = None) -> dict[str, Any]:
-    """Where and with what a run is made: versions, source commit, host, threads, device."""
+    """Where and with what a run is made: versions, source commit, host, CPU, threads, device."""
     import scipy
     import torch
 
-    from hmepol_cli import __version__
+    from hmepol_cli import __version__, hardware
 
     info: dict[str, Any] = {
         "hmepol": __version__,
@@ -115,6 +115,8 @@ def provenance(device: torch.device | str | None = None) -> dict[str, Any]:
         "numpy": np.__version__,
         "scipy": scipy.__version__,
         "host": socket.gethostname(),
+        "cpu": hardware.cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "threads": torch.get_num_threads(),
         "device": str(device) if device is not None else None,
         "command": " ".join(shlex.quote(a) for a in sys.argv),
