@@ -230,6 +230,7 @@ class RunState:
     status: str
     pace: float  # seconds an epoch, over its last epochs (NaN before its first)
     table: pd.DataFrame = field(repr=False)
+    machines: list[dict] = field(default_factory=list)  # run.json's: where its epochs were made
 
     @property
     def complete(self) -> bool:
@@ -254,9 +255,33 @@ def arm_runs(arm: Arm, epochs: int) -> dict[int, RunState]:
             pace = float(table["seconds"].tail(5).median())
         out[int(info.get("seed", 0))] = RunState(
             info_file.parent, int(info.get("seed", 0)), len(table), epochs,
-            str(info.get("status", "unknown")), pace, table,
+            str(info.get("status", "unknown")), pace, table, list(info.get("machines") or []),
         )  # fmt: skip
     return out
+
+
+def machines_line(runs: dict[int, RunState]) -> str | None:
+    """Which machines trained an arm's seeds, from each run.json's ``machines``: ``AMD EPYC
+    7B13: seeds 0, 1; Intel(R) Xeon(R) Processor (family 6, model 167): seed 1 from epoch 200,
+    seed 2; not recorded: seed 3`` (None when no run records one)."""
+    by_machine: dict[str, list[str]] = {}
+    unrecorded = []
+    for seed, run in sorted(runs.items()):
+        if not run.machines:
+            unrecorded.append(str(seed))
+        for machine in run.machines:
+            name = machine.get("gpu") or machine.get("cpu") or "an unnamed CPU"
+            start = int(machine.get("from_epoch", 0))
+            since = f" from epoch {start}" if start else ""
+            by_machine.setdefault(name, []).append(f"{seed}{since}")
+    if not by_machine:
+        return None
+    if unrecorded:
+        by_machine["not recorded"] = unrecorded
+    return "; ".join(
+        f"{name}: {'seed' if len(seeds) == 1 else 'seeds'} {', '.join(seeds)}"
+        for name, seeds in by_machine.items()
+    )
 
 
 SMOOTH_EPOCHS = 25  # the running median of an arm's epoch times
@@ -512,6 +537,9 @@ def status_lines(st: Status) -> list[str]:
             seeds = " ".join(str(s) for s in sorted(metric))
             lines.append(f"    M over its {ci.n} complete {'seed' if ci.n == 1 else 'seeds'} "
                          f"({seeds}): {ci.mean:.3f}{spread}, descriptive")  # fmt: skip
+        trained_on = machines_line(runs)
+        if trained_on:
+            lines.append(f"    trained on {trained_on}")
     lines.append(f"complete stages: {st.complete_stages} of {spec.stages}")
     if not st.finished and not spec.posthoc:
         stage = st.complete_stages + 1
@@ -521,7 +549,7 @@ def status_lines(st: Status) -> list[str]:
         arms = stage_arms(spec, st.decisions)
         which = ("" if len(arms) == len(spec.arms)
                  else f" for {', '.join(arms)}, the arms of the comparisons AdaStop left undecided")
-        lines.append(f"stage {stage} still needs {left}{which} on this machine{borrowed}")
+        lines.append(f"stage {stage} still needs {left} on this machine{which}{borrowed}")
     for (b, a), d in st.differences.items():
         if d.n:
             lines.append(f"{b} - {a}: {d.text()}; {d.answer(b, a)}")

@@ -160,6 +160,24 @@ def test_status_pairs_the_seeds_two_arms_have_complete_before_their_stage_is(tmp
 
 
 @pytest.mark.slow  # end to end: runs of the installed command (make test runs it)
+def test_each_arm_names_the_machines_its_seeds_trained_on(tmp_path):
+    """Seeds 0-1 on an EPYC, seed 1 continued on a Xeon from epoch 3, seed 2 wholly on the
+    Xeon, seed 3 from before run.json kept machines: one line under the arm, by machine."""
+    spec = load_spec(spec_file(tmp_path, n=4, stages=1))
+    epyc, xeon = "AMD EPYC 7B13", "Intel(R) Xeon(R) Processor (family 6, model 167)"
+    trained = {0: [(0, epyc)], 1: [(0, epyc), (3, xeon)], 2: [(0, xeon)], 3: []}
+    for seed, machines in trained.items():
+        run = make_run(spec.arms["a"].folder, seed, 1.0, 5)
+        info = json.loads((run / "run.json").read_text())
+        info["machines"] = [{"from_epoch": e, "cpu": cpu, "device": "cpu"} for e, cpu in machines]
+        (run / "run.json").write_text(json.dumps(info))
+    make_run(spec.arms["b"].folder, 0, 1.0, 5)  # no record at all: no line
+    lines = status_lines(status(spec))
+    line = (f"    trained on {epyc}: seeds 0, 1; {xeon}: seeds 1 from epoch 3, 2; "
+            "not recorded: seed 3")
+    assert line in lines and sum(x.startswith("    trained on") for x in lines) == 1
+
+
 def test_a_changed_spec_or_commit_is_refused(tmp_path):
     path = spec_file(tmp_path, n=2, stages=2)
     written = preregister(load_spec(path), "c0ffee")
@@ -655,7 +673,7 @@ def test_a_later_stage_trains_only_the_arms_of_undecided_comparisons(tmp_path, m
     assert st.decisions[0].decisions == {("b", "a"): "larger", ("d", "c"): "continue"}
     assert stage_arms(spec, st.decisions) == ["c", "d"]
     line = next(line for line in status_lines(st) if "still needs" in line)
-    assert "still needs 0.0 h for c, d, the arms of the comparisons AdaStop left" in line
+    assert "still needs 0.0 h on this machine for c, d, the arms of the comparisons" in line
     # stage 2's hours: c's and d's 4 seeds, 5 epochs at 2 s, one population each, one at a time
     assert st.stage_hours(2) == pytest.approx(2 * 5 * 2 / 3600)
 
