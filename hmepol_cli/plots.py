@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -234,11 +235,25 @@ def _blocks(fig: Figure, n_blocks: int, rows_per_block: int, cols: int, labels: 
     subfigs = fig.subfigures(n_blocks, 1, squeeze=False)[:, 0]
     grids = []
     for subfig, label in zip(subfigs, labels, strict=True):
-        if label:  # ~8 bold 10-point characters an inch: a longer label gets smaller type
-            fits = 8.0 * subfig.figure.get_figwidth()
-            subfig.suptitle(label, fontsize=min(10.0, 10.0 * fits / len(label)), fontweight="bold")
+        if label:
+            text, size = block_title(label, 8.0 * subfig.figure.get_figwidth())
+            subfig.suptitle(text, fontsize=size, fontweight="bold")
         grids.append(subfig.subplots(rows_per_block, cols, squeeze=False))
     return grids
+
+
+def block_title(label: str, fits: float) -> tuple[str, float]:
+    """A block's title and its type size, for a width that ``fits`` bold 10-point characters
+    (~8 an inch): a longer label is broken at a space into two lines, and gets smaller type
+    only where its longer line still does not fit."""
+    if len(label) <= fits:
+        return label, 10.0
+    width = max(int(fits), math.ceil(len(label) / 2))
+    lines = textwrap.wrap(label, width, break_long_words=False)
+    while len(lines) > 2:
+        width += 1
+        lines = textwrap.wrap(label, width, break_long_words=False)
+    return "\n".join(lines), min(10.0, 10.0 * fits / max(len(line) for line in lines))
 
 
 def heatmap_grid(

@@ -1167,6 +1167,19 @@ def test_a_block_label_too_long_for_the_figure_gets_smaller_type():
     assert long.get_fontsize() == pytest.approx(10 * 8.0 * 6.2 / 100)
 
 
+def test_a_long_block_label_takes_two_lines_before_smaller_type():
+    from hmepol_cli.plots import block_title
+
+    label = "HMepol (algo.trust_region=exact): seed 3 (its final entropy is the lower median of 4)"
+    text, size = block_title(label, 40.0)  # a 5-inch block: 40 characters of 10-point type
+    first, second = text.split("\n")
+    assert f"{first} {second}" == label and max(len(first), len(second)) == 44
+    assert size == pytest.approx(10 * 40 / 44)  # against 10 * 40 / 85 on one line
+    assert block_title("Mepol: seed 2", 40.0) == ("Mepol: seed 2", 10.0)
+    text, size = block_title(label, 50.0)  # two lines of at most 50 characters: full size
+    assert text.count("\n") == 1 and size == 10.0
+
+
 def test_category_labels_break_at_parenthesis_and_commas_and_shrink_to_fit():
     from hmepol_cli.plots import category_labels
 
