@@ -335,8 +335,11 @@ class Status:
         recently launched sibling first; the newest are the likeliest to have run on this
         machine, code and layout. Past every run: the median of the last 5 epochs known. Each
         source is a running median over 25 epochs, so that a pause (a suspended process, a
-        busy machine) does not count as the cost of the epoch it hit. All NaN while neither
-        the arm nor a sibling has a run with an epoch.
+        busy machine) does not count as the cost of the epoch it hit. A later source that
+        shares at least 25 epochs with the times already known is scaled to them (by the ratio
+        of their sums over those epochs): a stage continued on a faster machine than its
+        earlier stages ran on is timed at its own speed. All NaN while neither the arm nor a
+        sibling has a run with an epoch.
 
         Per epoch, not one pace: an arm's epochs need not cost the same (HMepol's exact trust
         region takes more off-policy iterations early on), which an average of a run's recent
@@ -361,6 +364,9 @@ class Status:
                 known = _median_seconds(group, epochs)
                 fill = np.isnan(times) & np.isfinite(known)
                 if fill.any():
+                    both = np.isfinite(times) & np.isfinite(known)
+                    if both.sum() >= SMOOTH_EPOCHS:  # at the pace of the epochs already known
+                        known = known * (times[both].sum() / known[both].sum())
                     times[fill] = known[fill]
                     lent += [source] if source != name else []
             known = np.flatnonzero(np.isfinite(times))

@@ -546,12 +546,15 @@ def test_what_is_left_is_timed_epoch_by_epoch_at_the_epochs_a_run_has_left(tmp_p
     runs("a2", [3.0] * 45)
     st = status(spec)
     assert st.epoch_seconds(1)["a2"][0][:45].tolist() == [3.0] * 45  # its own where it has them
-    assert st.stage_hours(1) == pytest.approx((15 * 2 + 360) / 3600)  # a2's 15 left, a3's 60
+    # a2's 15 left at a's 2 s, scaled to a2's pace over the 45 epochs both have: 135 s to a's
+    # 30 x 10 + 15 x 2 = 330 s; a3's 60 at a's, unscaled (it has no epoch of its own)
+    pace = 135 / 330
+    assert st.stage_hours(1) == pytest.approx((15 * 2 * pace + 360) / 3600)
 
     # a3's siblings: a, launched 2026-01-02, and a2, launched later, whose 45 epochs lend first
     runs("a2", [3.0] * 45, "2026-01-03T00:00:00+00:00")
     times, lent = status(spec).epoch_seconds(1)["a3"]
-    assert lent == ["a2", "a"] and times.sum() == pytest.approx(45 * 3 + 15 * 2)
+    assert lent == ["a2", "a"] and times.sum() == pytest.approx(45 * 3 + 15 * 2 * pace)
 
     # past every run: the last 5 epochs' time. a3 alone, at epoch 30 of 60: 30 left x 6 s
     shutil.rmtree(spec.arms["a"].folder)
@@ -575,6 +578,24 @@ def test_a_stage_is_timed_at_its_own_runs_before_the_arms_earlier_stages(tmp_pat
     assert st.complete_stages == 1
     assert st.epoch_seconds(2)["a"][0].sum() == pytest.approx(565)
     assert st.stage_hours(2) == pytest.approx(2 * 565 / 3600)  # two arms, one at a time
+
+
+def test_a_stage_on_a_faster_machine_is_timed_at_its_own_speed(tmp_path):
+    """By hand: stage 1 at 10 s an epoch (another machine), stage 2's seeds at 4 s for their
+    first 30 epochs: their 30 left at stage 1's times scaled by 4 / 10, 30 x 4 = 120 s (unscaled
+    300); with 20 epochs of their own, too few to compare, stage 1's 10 s as they are."""
+    spec = load_spec(spec_file(tmp_path, n=2, stages=2, epochs=60))
+    for arm in "ab":
+        for seed in (0, 1):
+            timed(make_run(spec.arms[arm].folder, seed, 1.0, 60, epochs=60), [10.0] * 60)
+        for seed in (2, 3):
+            timed(make_run(spec.arms[arm].folder, seed, 1.0, 30, epochs=60), [4.0] * 30)
+    times = status(spec).epoch_seconds(2)["a"][0]
+    assert times[30:].sum() == pytest.approx(120) and times[:30].tolist() == [4.0] * 30
+    assert status(spec).stage_hours(2) == pytest.approx(2 * 120 / 3600)
+    for seed in (2, 3):
+        timed(make_run(spec.arms["a"].folder, seed, 1.0, 20, epochs=60), [4.0] * 20)
+    assert status(spec).epoch_seconds(2)["a"][0][20:].sum() == pytest.approx(400)
 
 
 def launched(run: Path, *stamps: str) -> None:
