@@ -2,6 +2,8 @@
 # TORCH_VERSION pins the CPU wheel; a GPU user picks their own build:
 #   make install TORCH_SPEC="torch --index-url https://download.pytorch.org/whl/cu124"
 PYTHON ?= python3
+# The command, through the Python it was installed into (found without that Python's bin/ on PATH)
+HMEPOL ?= $(PYTHON) -m hmepol_cli
 TORCH_VERSION ?= 2.13.0
 TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
@@ -24,11 +26,11 @@ install:
 
 # Trains Mepol and HMepol on a small slope world, fine-tunes both on a goal, and writes the report.
 demo: install-demo
-	hmepol sweep experiment=demo algo=mepol,hmepol hydra.sweep.dir=$(DEMO_DIR)/pretrain
-	hmepol finetune init=$(DEMO_DIR)/pretrain/algo-hmepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/hmepol
-	hmepol finetune init=$(DEMO_DIR)/pretrain/algo-mepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/mepol
-	hmepol finetune init=none $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/scratch
-	hmepol report $(DEMO_DIR) --out $(DEMO_DIR)/report
+	$(HMEPOL) sweep experiment=demo algo=mepol,hmepol hydra.sweep.dir=$(DEMO_DIR)/pretrain
+	$(HMEPOL) finetune init=$(DEMO_DIR)/pretrain/algo-hmepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/hmepol
+	$(HMEPOL) finetune init=$(DEMO_DIR)/pretrain/algo-mepol_experiment-demo $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/mepol
+	$(HMEPOL) finetune init=none $(DEMO_FINETUNE) hydra.run.dir=$(DEMO_DIR)/finetune/scratch
+	$(HMEPOL) report $(DEMO_DIR) --out $(DEMO_DIR)/report
 
 # The tests run on every CPU (pytest-xdist; TEST_WORKERS=0 for one process): most are one
 # single-threaded process each. Tests that read one expensive run share an xdist_group, so that
@@ -65,13 +67,13 @@ QUICK_SEEDS ?= seed=0,1,2,3
 # (estimated from its first epochs). Interrupted, either half resumes from its checkpoints and
 # skips what finished.
 reproduce-quick: reproduce-quick-slope reproduce-quick-multigrid
-	hmepol report $(QUICK_DIR) --out $(QUICK_DIR)/report
+	$(HMEPOL) report $(QUICK_DIR) --out $(QUICK_DIR)/report
 
 reproduce-quick-slope:
-	hmepol sweep experiment=quick_slope algo=mepol,alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/slope
+	$(HMEPOL) sweep experiment=quick_slope algo=mepol,alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/slope
 
 reproduce-quick-multigrid:
-	hmepol sweep experiment=quick_multigrid algo=alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/multigrid
+	$(HMEPOL) sweep experiment=quick_multigrid algo=alphamepol,hmepol $(QUICK_SEEDS) progress=false hydra/launcher=population hydra.sweep.dir=$(QUICK_DIR)/multigrid
 
 # RESULTS.md's figures and tables, rebuilt from the runs kept in docs/results/ (about a minute):
 # the chapter 5 runs, the collapse study, the float32 / bf16 curves and the
@@ -79,13 +81,13 @@ reproduce-quick-multigrid:
 # "decisive tables" markers, and its curves per arm in docs/results/decisive/figures, interim
 # while its runs go on (`hmepol report` skips unfinished runs, so it draws none of them yet).
 results:
-	hmepol report docs/results/full docs/results/quick --out docs/results
-	hmepol report docs/results/collapse/n20-* --out docs/results/collapse/report-n20
-	hmepol report docs/results/collapse/n100-gradient docs/results/collapse/n100-exact docs/results/collapse/n100-adam docs/results/collapse/n100-bptt-full docs/results/collapse/n100-mepol --out docs/results/collapse/report-n100
-	hmepol report docs/results/collapse/finetune-epoch100 --out docs/results/collapse/report-finetune-epoch100
-	hmepol report docs/results/collapse/finetune-epoch75 --out docs/results/collapse/report-finetune-epoch75
-	hmepol report docs/results/precision --out docs/results/precision/report
-	hmepol study conf/study/decisive_corridor.yaml --status
+	$(HMEPOL) report docs/results/full docs/results/quick --out docs/results
+	$(HMEPOL) report docs/results/collapse/n20-* --out docs/results/collapse/report-n20
+	$(HMEPOL) report docs/results/collapse/n100-gradient docs/results/collapse/n100-exact docs/results/collapse/n100-adam docs/results/collapse/n100-bptt-full docs/results/collapse/n100-mepol --out docs/results/collapse/report-n100
+	$(HMEPOL) report docs/results/collapse/finetune-epoch100 --out docs/results/collapse/report-finetune-epoch100
+	$(HMEPOL) report docs/results/collapse/finetune-epoch75 --out docs/results/collapse/report-finetune-epoch75
+	$(HMEPOL) report docs/results/precision --out docs/results/precision/report
+	$(HMEPOL) study conf/study/decisive_corridor.yaml --status
 
 # Chapter 5 at the thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid) as
 # populations over hyperparameters (hydra/launcher=population groups each sweep's runs by their
@@ -102,16 +104,16 @@ DRY ?= false
 SEEDS8 = seed=0,1,2,3,4,5,6,7
 FULL = device=$(DEVICE) progress=false hydra/launcher=$(LAUNCHER) hydra.launcher.dry_run=$(DRY)
 chapter5:
-	hmepol sweep experiment=slope_mepol,slope_alphamepol,slope_hmepol $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/slope
-	hmepol sweep experiment=corridor_mepol,corridor_alphamepol,corridor_hmepol wind=0.05,0.15,0.25,0.4 $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/corridor
-	hmepol sweep experiment=multigrid_alphamepol,multigrid_hmepol seed=0,1,2,3 $(FULL) hydra.sweep.dir=$(FULL_DIR)/multigrid
-	if [ "$(DRY)" != true ]; then hmepol report $(FULL_DIR) --out $(FULL_DIR)/report; fi
+	$(HMEPOL) sweep experiment=slope_mepol,slope_alphamepol,slope_hmepol $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/slope
+	$(HMEPOL) sweep experiment=corridor_mepol,corridor_alphamepol,corridor_hmepol wind=0.05,0.15,0.25,0.4 $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/corridor
+	$(HMEPOL) sweep experiment=multigrid_alphamepol,multigrid_hmepol seed=0,1,2,3 $(FULL) hydra.sweep.dir=$(FULL_DIR)/multigrid
+	if [ "$(DRY)" != true ]; then $(HMEPOL) report $(FULL_DIR) --out $(FULL_DIR)/report; fi
 
 reproduce: chapter5 finetune-corridor
 
 # What RESULTS.md's full-scale section ran: the corridor at wind 0.4 (~20 minutes of one H100).
 reproduce-corridor:
-	hmepol sweep experiment=corridor_mepol,corridor_hmepol wind=0.4 $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/corridor
+	$(HMEPOL) sweep experiment=corridor_mepol,corridor_hmepol wind=0.4 $(SEEDS8) $(FULL) hydra.sweep.dir=$(FULL_DIR)/corridor
 
 # Thesis Fig. 5.9 on a CPU: TRPO on five random targets of the counterclockwise corridor, from
 # the wind-0.4 policies of seeds 0 and 1 of each algorithm, and from scratch.
@@ -120,9 +122,9 @@ FINETUNE ?= epochs=50 episodes=10 horizon=400 targets=5 config=1 fisher_fraction
 # sweep's report with the decisive experiment's wind 0.4 beside it (Fig. 5.10, A.2);
 # UNFINISHED=--unfinished draws it while runs are still going.
 studies:
-	for s in conf/study/*.yaml; do hmepol study $$s --status || exit 1; echo; done
+	for s in conf/study/*.yaml; do $(HMEPOL) study $$s --status || exit 1; echo; done
 report-wind-sweep:
-	hmepol report docs/results/wind_sweep docs/results/decisive/mepol docs/results/decisive/exact $(UNFINISHED) --out docs/results/wind_sweep/report
+	$(HMEPOL) report docs/results/wind_sweep docs/results/decisive/mepol docs/results/decisive/exact $(UNFINISHED) --out docs/results/wind_sweep/report
 
 # The pre-registered fine-tuning (docs/results/finetune_continuation/PREREGISTRATION.md): from
 # the corridor continuation's final policies (seeds 8-11, and 12-15 when they exist), from a
@@ -136,15 +138,15 @@ finetune-continuation:
 	  for a in mepol exact; do \
 	    run=$$(ls -d $(CONTINUATION_DIR)/$$a/*_seed-$$s*/ | head -1); \
 	    test -f "$$run/policy.pt" || { echo "no final policy in $$run"; exit 1; }; \
-	    hmepol finetune init=$$run seed=$$s $(FINETUNE_BOTH) output_dir=$(FINETUNE_OUT)/$$a-seed$$s || exit 1; \
+	    $(HMEPOL) finetune init=$$run seed=$$s $(FINETUNE_BOTH) output_dir=$(FINETUNE_OUT)/$$a-seed$$s || exit 1; \
 	  done; \
-	  hmepol finetune init=none env=corridor wind=0.4 seed=$$s $(FINETUNE_BOTH) output_dir=$(FINETUNE_OUT)/scratch-seed$$s || exit 1; \
+	  $(HMEPOL) finetune init=none env=corridor wind=0.4 seed=$$s $(FINETUNE_BOTH) output_dir=$(FINETUNE_OUT)/scratch-seed$$s || exit 1; \
 	done
 
 finetune-corridor:
 	for s in 0 1; do \
 	  for a in mepol hmepol; do \
-	    hmepol finetune init=$(FULL_DIR)/corridor/experiment-corridor_$${a}_seed-$${s}_wind-0.4 $(FINETUNE) output_dir=$(FULL_DIR)/finetune/$${a}-seed$${s} || exit 1; \
+	    $(HMEPOL) finetune init=$(FULL_DIR)/corridor/experiment-corridor_$${a}_seed-$${s}_wind-0.4 $(FINETUNE) output_dir=$(FULL_DIR)/finetune/$${a}-seed$${s} || exit 1; \
 	  done; \
-	  hmepol finetune init=none env=corridor wind=0.4 seed=$$s $(FINETUNE) output_dir=$(FULL_DIR)/finetune/scratch-seed$$s || exit 1; \
+	  $(HMEPOL) finetune init=none env=corridor wind=0.4 seed=$$s $(FINETUNE) output_dir=$(FULL_DIR)/finetune/scratch-seed$$s || exit 1; \
 	done

@@ -90,6 +90,10 @@ def test_the_demo_install_pulls_no_tracking_mujoco_or_test_packages():
     assert not pulled & {"pytest", "hypothesis", "ruff"}, lines
     # the demo itself runs before nothing is installed: its first command is an install
     assert "pip install" in lines[0] and "hmepol" in "\n".join(lines[2:])
+    # and every command after the installs runs through the Python that holds the package, so
+    # PYTHON=<a venv's python> works without that venv's bin/ on PATH
+    commands = [line for line in lines if "pip install" not in line]
+    assert commands and all(line.startswith("python -m hmepol_cli ") for line in commands), lines
 
 
 def test_make_install_and_make_test_do_install_the_extras_the_tests_use():
