@@ -72,13 +72,13 @@ class RunDirectory:
                     )
             else:
                 atomic_write_text(config_file, OmegaConf.to_yaml(self.cfg, resolve=True))
+            made_by = provenance(device)  # once: it asks git for the source's state
             with open(self.path / COMMANDS, "a") as log:
                 os.chmod(self.path / COMMANDS, 0o666 & ~umask())
                 log.write(
                     f"{timestamp()} {socket.gethostname()} pid={os.getpid()} "
-                    f"{provenance()['command']}\n"
+                    f"{made_by['command']}\n"
                 )
-            made_by = provenance(device)
             self.update(
                 kind=self.kind,
                 status="running",
