@@ -478,6 +478,107 @@ def test_fine_tuning_seeds_of_one_pre_training_run_are_one_unit(tmp_path):
     assert (scratch["n_units"] == 3).all() and (scratch["n_pretrain"] == 0).all()
 
 
+def test_fine_tuning_reaches_the_mepol_final_return_not_its_last_epoch(tmp_path):
+    from hmepol_cli.report.summary import finetune_table
+
+    # Mepol's final return is its mean over the last 10% of epochs (18, 19: 0.925), not its
+    # last epoch's 0.95; HMepol's curve e / 19 passes 0.925 at epoch 18 and 0.95 only at 19.
+    for algo, slope in (("mepol", 1 / 20), ("hmepol", 1 / 19)):
+        for seed in (0, 1):
+            write_finetune_run(
+                tmp_path, algo_init=algo, seed=seed, epochs=20, targets=1,
+                returns=lambda e, t, k=slope: k * e,
+            )  # fmt: skip
+    table = finetune_table(discover_runs(tmp_path)[0]).set_index(["config", "init"])
+    assert table.loc[(0, "Mepol"), "final_return"] == pytest.approx(0.925)
+    assert table.loc[(0, "HMepol"), "first_epoch_reaching_mepol_final"] == 18
+
+
+def test_fine_tuning_differences_are_paired_by_seed_by_hand(tmp_path):
+    from hmepol_cli.report.summary import finetune_difference_table
+
+    returns = {"mepol": {0: 0.4, 1: 0.4, 2: 0.2}, "hmepol": {0: 0.9, 1: 0.5, 2: 0.7}}
+    for algo, by_seed in returns.items():
+        for seed, value in by_seed.items():
+            write_finetune_run(
+                tmp_path, algo_init=algo, seed=seed, returns=lambda e, t, v=value: v
+            )
+    row = finetune_difference_table(discover_runs(tmp_path)[0]).iloc[0]
+    assert row["comparison"] == "HMepol − Mepol" and row["configs"] == "0 1"
+    assert (row["n_pairs"], row["seeds"]) == (3, "0 1 2")
+    # d = 0.5, 0.1, 0.5: mean 0.36667, s = 0.23094, t_{0.975,2} = 4.302653, se = s / sqrt(3)
+    assert row["diff"] == pytest.approx(0.11 / 0.3)
+    assert row["ci95_half_width"] == pytest.approx(4.302653 * 0.23094011 / math.sqrt(3), rel=1e-6)
+    # |d| = (0.5, 0.1, 0.5): of the 8 sign assignments, only all + and all - reach |0.3667|.
+    assert row["p_sign_flip"] == pytest.approx(0.25)
+    assert (row["return_a"], row["return_b"]) == pytest.approx((1.0 / 3, 0.7))
+
+
+def test_fine_tuning_pairs_by_pre_training_seed_when_one_fine_tuning_seed_serves_all(tmp_path):
+    from hmepol_cli.report.summary import finetune_difference_table
+
+    # make finetune-corridor's layout: every pre-trained start fine-tuned with seed 0. The
+    # pre-training seed comes from the run's run.json (HMepol's, here 7 and 8, whatever its name
+    # says) or, where that folder is gone, from a seed-<n> in its name (Mepol's).
+    kept = {}
+    for n in (7, 8):
+        kept[n] = tmp_path / "pretraining" / f"kept-{n}"
+        kept[n].mkdir(parents=True)
+        (kept[n] / "run.json").write_text(json.dumps({"seed": n}))
+    values = {"hmepol": {7: 0.9, 8: 0.5}, "mepol": {7: 0.4, 8: 0.4}}
+    for algo, by_seed in values.items():
+        for n, value in by_seed.items():
+            init = kept[n] if algo == "hmepol" else f"/gone/experiment-corridor_{algo}_seed-{n}@75"
+            write_finetune_run(
+                tmp_path / "ft", algo_init=algo, seed=0, init=str(init), name=f"{algo}-{n}",
+                returns=lambda e, t, v=value: v,
+            )  # fmt: skip
+    row = finetune_difference_table(discover_runs(tmp_path / "ft")[0]).iloc[0]
+    assert (row["n_pairs"], row["seeds"]) == (2, "7 8")
+    assert row["diff"] == pytest.approx(0.3) and row["p_sign_flip"] == pytest.approx(0.5)
+
+
+def test_fine_tuning_differences_cut_to_the_range_and_pool_only_shared_configs(tmp_path):
+    from hmepol_cli.report.summary import finetune_difference_table
+
+    # Seed 0: Mepol 0.0, HMepol 0.9; seed 1: 0.5 and 0.6. HMepol's configuration 1 (1.0, never
+    # reached by Mepol, which ran only configuration 0) stays out of the pairs.
+    for algo, by_seed in {"mepol": {0: 0.0, 1: 0.5}, "hmepol": {0: 0.9, 1: 0.6}}.items():
+        for seed, value in by_seed.items():
+            run = write_finetune_run(
+                tmp_path, algo_init=algo, seed=seed, returns=lambda e, t, v=value: v
+            )
+            rows = pd.read_csv(run / "finetune.csv")
+            if algo == "mepol":
+                rows = rows[rows["config"] == 0]
+            else:
+                rows.loc[rows["config"] == 1, "return"] = 1.0
+            rows.to_csv(run / "finetune.csv", index=False)
+    row = finetune_difference_table(discover_runs(tmp_path)[0]).iloc[0]
+    assert row["configs"] == "0" and row["diff"] == pytest.approx(0.5)
+    # d = 0.9, 0.1: half-width 12.706 * 0.4 = 5.08, cut to the range of a difference, [-1, 1].
+    assert row["ci95_half_width"] == pytest.approx(12.706204736 * 0.4, rel=1e-9)
+    assert (row["ci95_low"], row["ci95_high"]) == (-1.0, 1.0)
+
+
+def test_fine_tuning_differences_first_epoch_and_every_pair_of_starts(tmp_path):
+    from hmepol_cli.report.summary import finetune_difference_table
+
+    # The default returns: min(1, speed e / 10) (1 - 0.01 t), speeds 1.0, 0.3, 0.1, targets
+    # 0-2. Mepol's R: its last epoch, 0.27 * 0.99 = 0.2673; HMepol's mean curve 0.099 e
+    # reaches it at epoch 3.
+    for algo in ("hmepol", "mepol", "scratch"):
+        for seed in (0, 1):
+            write_finetune_run(tmp_path, algo_init=algo, seed=seed)
+    table = finetune_difference_table(discover_runs(tmp_path)[0]).set_index("comparison")
+    assert list(table.index) == ["HMepol − Mepol", "from scratch − Mepol", "from scratch − HMepol"]
+    row = table.loc["HMepol − Mepol"]
+    assert row["return_a"] == pytest.approx(0.2673)
+    assert row["first_epoch_b_reaching_a"] == 3
+    # Scratch (0.1 e / 10) never reaches HMepol's 0.891 in 10 epochs.
+    assert math.isnan(table.loc["from scratch − HMepol", "first_epoch_b_reaching_a"])
+
+
 def test_a_reward_task_without_a_success_rate_is_not_bounded(tmp_path):
     from hmepol_cli.report.summary import finetune_table
 
@@ -603,7 +704,10 @@ def test_report_skips_bad_runs_and_still_builds(tmp_path, capsys):
     assert hm["n_pretrain"] == 2 and hm["n_targets"] == 3
     bounded = finetune[["ci95_low", "ci95_high"]].dropna().to_numpy()
     assert ((bounded >= 0.0) & (bounded <= 1.0)).all()
-    assert (out / "summary.md").read_text().count("HMepol − Mepol") == 3
+    # 3 rows of the entropy differences (average + 2 configurations), 1 of fine-tuning's.
+    assert (out / "summary.md").read_text().count("HMepol − Mepol") == 4
+    paired = pd.read_csv(out / "finetune_differences.csv").set_index("comparison")
+    assert paired.loc["HMepol − Mepol", "configs"] == "0 1"
     # Every table says its unit, what its n resolves, and that two seeds are too few.
     assert "The unit of independence is the pre-training run" in page
     assert page.count("What these seeds resolve") == 2 and "What these units resolve" in page

@@ -60,8 +60,9 @@ def run_report(runs_roots: Path | Sequence[Path], out_dir: Path, unfinished: boo
     into ``out_dir``.
 
     Writes ``out_dir/index.html``, ``out_dir/figures/*.png``, ``summary.csv``,
-    ``differences.csv``, ``summary.md`` (and ``finetune.csv`` when there are fine-tuning runs;
-    ``study.md``, its decisions stage by stage, for a study's folder), and ``report.json``,
+    ``differences.csv``, ``summary.md`` (and ``finetune.csv``, ``finetune_differences.csv``
+    when there are fine-tuning runs; ``study.md``, its decisions stage by stage, for a study's
+    folder), and ``report.json``,
     the list of those files; returns the path of ``index.html``. The files
     of an earlier report in ``out_dir`` that this one does not write again are deleted; a
     non-empty ``out_dir`` without ``report.json`` is refused. Unusable runs are skipped with a

@@ -95,6 +95,7 @@ def finetune_frame(runs: list[Run]) -> pd.DataFrame:
         frame["wind"] = run.wind
         frame["run"] = str(run.path)
         frame["pretraining_run"] = run.pretraining_run
+        frame["pairing_seed"] = run.pairing_seed
         frame["unit"] = run.independent_unit
         frame["bound_low"], frame["bound_high"] = run.return_bounds
         frames.append(frame)

@@ -123,11 +123,13 @@ UNIT_COLUMNS = {
     "summary": ("n_seeds",),
     "differences": ("n_a", "n_b"),
     "finetune": ("n_units",),
+    "finetune_differences": ("n_pairs",),
 }
 UNIT_NAMES = {
     "summary": "seeds",
     "differences": "seeds in an arm",
     "finetune": "units (pre-training runs; from scratch, fine-tuning runs)",
+    "finetune_differences": "seed pairs",
 }
 FEW_UNITS_CAVEATS = {
     "summary": "and no bootstrap interval is given",
@@ -136,6 +138,8 @@ FEW_UNITS_CAVEATS = {
         "guess from two values"
     ),
     "finetune": "so that the interval of a return in [0, 1] is mostly the whole range",
+    "finetune_differences": "so that the interval of a difference of returns is mostly its "
+    "whole range",
 }
 
 

@@ -5,6 +5,7 @@ directory as loading.py read it), copies of one run merged and a seed found twic
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import hashlib
 import math
@@ -22,7 +23,8 @@ from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
 from hmepol_cli.plots import WorldMap
 from hmepol_cli.report.defaults import algo_defaults
 from hmepol_cli.report.stats import FINAL_FRACTION, UNBOUNDED, final_value
-from hmepol_cli.run import CHECKPOINT
+from hmepol_cli.errors import RunDirError
+from hmepol_cli.run import CHECKPOINT, read_json
 
 # Config keys that say how a run was executed, not what was run: never a reason to split groups.
 RUN_SPECIFIC_KEYS = {
@@ -54,6 +56,7 @@ RUN_SPECIFIC_PREFIXES = ("hydra", "logger.", "checkpoint.", "eval.plot_")
 # long each epoch took on its machine.
 OUTPUT_KEYS = ("output_dir",)
 TIMING_COLUMNS = ("seconds", "wall_time")
+SEED_IN_NAME = re.compile(r"(?:^|[_/-])seed[-=](\d+)(?=$|[_@/,-])")
 
 # Short names of the keys that usually vary, for labels and table columns.
 SHORT_NAMES = {
@@ -181,6 +184,27 @@ class Run:
         if path.suffix == CHECKPOINT.suffix:  # a checkpoint file: <run>/checkpoints/<name>.pt
             path = path.parent.parent if path.parent.name == CHECKPOINT.parent.name else path.parent
         return str(path)
+
+    @property
+    def pretraining_seed(self) -> int | None:
+        """The seed of the pre-training run a fine-tuning started from: its run.json's where it
+        can be read, else a ``seed-<n>`` or ``seed=<n>`` in its directory's name; None from
+        scratch or when neither says."""
+        run = self.pretraining_run
+        if run is None:
+            return None
+        with contextlib.suppress(OSError, ValueError, TypeError, RunDirError):
+            return int(read_json(Path(run) / "run.json")["seed"])
+        found = SEED_IN_NAME.findall(Path(run).name)
+        return int(found[-1]) if found else None
+
+    @property
+    def pairing_seed(self) -> int:
+        """The seed that pairs a fine-tuning with the other starts': the pre-training run's
+        where it is known (seeds 0 and 1 of each algorithm fine-tuned with one seed stay two
+        pairs), else the fine-tuning seed (from scratch)."""
+        seed = self.pretraining_seed
+        return self.seed if seed is None else seed
 
     @property
     def independent_unit(self) -> str:

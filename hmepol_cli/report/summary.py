@@ -15,6 +15,7 @@ import pandas as pd
 from hmepol_cli.algorithms import SCRATCH
 from hmepol_cli.report.aggregates import METHOD as AGGREGATES_METHOD
 from hmepol_cli.report.aggregates import improvement_interval, iqm_interval, mean_interval
+from hmepol_cli.report.comparisons import sign_flip_p
 from hmepol_cli.report.diagnostics import (
     DROP_FROM,
     DROP_NATS,
@@ -22,7 +23,13 @@ from hmepol_cli.report.diagnostics import (
     drop_table,
     pooled_drops,
 )
-from hmepol_cli.report.frames import config_bound, finetune_curves, finetune_frame
+from hmepol_cli.report.frames import (
+    config_bound,
+    finetune_curves,
+    finetune_frame,
+    ordered_inits,
+    return_range,
+)
 from hmepol_cli.report.resolution import (
     DETECTABLE_COLUMN,
     PLANNED_DIFFERENCE,
@@ -35,7 +42,15 @@ from hmepol_cli.report.resolution import (
     resolution_line,
 )
 from hmepol_cli.report.runs import Group, Run, algo_label
-from hmepol_cli.report.stats import curve_ci, difference_ci, final_value, mean_ci, nested_mean_ci
+from hmepol_cli.report.stats import (
+    Spread,
+    curve_ci,
+    difference_ci,
+    final_value,
+    mean_ci,
+    nested_mean_ci,
+    seeds_for_half_width,
+)
 
 
 @dataclass(frozen=True)
@@ -172,7 +187,7 @@ def difference_table(groups: list[Group]) -> pd.DataFrame:
 def finetune_table(runs: list[Run]) -> pd.DataFrame:
     """Per env, wind, configuration and initialisation: final return (per curve the mean over
     the last 10% of epochs) with its 95% CI over the independent units, and the first epoch at
-    which the mean curve reaches the Mepol-initialised curve's final mean.
+    which the mean curve reaches the Mepol-initialised runs' final return.
 
     The unit is the pre-training run (from scratch, the fine-tuning run): a unit's targets and
     fine-tuning seeds are averaged first, and the t-interval is over the unit means
@@ -183,23 +198,20 @@ def finetune_table(runs: list[Run]) -> pd.DataFrame:
     rows = []
     for (env, wind), part in frame.groupby(["env", "wind"], sort=False, dropna=False):
         curves = finetune_curves(part)
-        mepol_final = {
-            config: curve_ci(c.unit_curves())[0][-1]
-            for (init, config), c in curves.items()
-            if init == "mepol"
+        finals = {
+            key: nested_mean_ci([final_value(x) for x in c.curves], c.units, bounds=c.bounds)
+            for key, c in curves.items()
         }
         for (init, config), c in sorted(curves.items(), key=lambda kv: (kv[0][1], kv[0][0])):
-            ci = nested_mean_ci([final_value(x) for x in c.curves], c.units, bounds=c.bounds)
-            mean = curve_ci(c.unit_curves())[0]
-            target = mepol_final.get(config, math.nan)
-            reached = np.flatnonzero(mean >= target) if np.isfinite(target) else []
+            ci = finals[(init, config)]
+            mepol = finals.get(("mepol", config))
             sub = part[(part["algo_init"] == init) & (part["config"] == config)]
             rows.append(
                 {
                     "env": env,
                     "wind": wind,
                     "config": config,
-                    "init": "from scratch" if init == SCRATCH.name else algo_label(init),
+                    "init": init_label(init),
                     "unit": "fine-tuning run" if init == SCRATCH.name else "pre-training run",
                     "n_units": ci.n,
                     "n_pretrain": sub["pretraining_run"].nunique(),
@@ -210,9 +222,93 @@ def finetune_table(runs: list[Run]) -> pd.DataFrame:
                     "ci95_low": ci.low,
                     "ci95_high": ci.high,
                     "ci95_half_width": ci.half_width,  # the t half-width, before the cut
-                    "first_epoch_reaching_mepol_final": c.epochs[reached[0]]
-                    if len(reached)
+                    "first_epoch_reaching_mepol_final": first_epoch_reaching(
+                        c.epochs, curve_ci(c.unit_curves())[0], mepol.mean if mepol else math.nan
+                    ),
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+FINETUNE_HALF_WIDTH = 0.2  # a difference of returns in [0, 1] known to +-0.2: the pairs it needs
+
+
+def init_label(init: str) -> str:
+    return "from scratch" if init == SCRATCH.name else algo_label(init)
+
+
+def first_epoch_reaching(epochs: np.ndarray, curve: np.ndarray, target: float) -> float:
+    """The first epoch at which ``curve`` is at least ``target`` (NaN: never, or no target)."""
+    if not np.isfinite(target):
+        return math.nan
+    reached = np.flatnonzero(np.asarray(curve, dtype=float) >= target)
+    return float(epochs[reached[0]]) if len(reached) else math.nan
+
+
+def finetune_difference_table(runs: list[Run]) -> pd.DataFrame:
+    """Paired differences of final return between two initialisations, over the fine-tuning
+    seeds both have, all configurations they share pooled.
+
+    The fine-tuning seed pairs them (a protocol such as ``make finetune-continuation``
+    fine-tunes the pre-training runs of seed s with seed s; every run draws its targets from
+    ``goal_seed``, so paired runs face the same targets). Per initialisation and seed, R is the
+    mean of its curves' final returns (each curve's mean over the last 10% of epochs) over its
+    targets and the shared configurations; d = R_b - R_a per seed, with the mean, its 95%
+    Student-t interval cut to the range a difference of returns can take, the exact sign-flip
+    p-value and the pairs a +-FINETUNE_HALF_WIDTH interval would need. Last column: the first
+    epoch at which b's mean curve (each of its independent units' mean curve over targets,
+    configurations and seeds, then their mean) reaches a's R averaged over the paired seeds."""
+    frame = finetune_frame(runs)
+    if frame.empty:
+        return pd.DataFrame()
+    rows = []
+    for (env, wind), part in frame.groupby(["env", "wind"], sort=False, dropna=False):
+        inits = ordered_inits(finetune_curves(part))
+        for a, b in itertools.combinations(inits, 2):
+            pair = part[part["algo_init"].isin([a, b])]
+            shared = set(pair.loc[pair["algo_init"] == a, "config"])
+            shared &= set(pair.loc[pair["algo_init"] == b, "config"])
+            pair = pair[pair["config"].isin(shared)]
+            table = pair.pivot_table(
+                index="epoch",
+                columns=["algo_init", "pairing_seed", "unit", "run", "config", "target"],
+                values="return",
+            )
+            finals = table.apply(final_value).rename("final").reset_index()
+            per_seed = finals.groupby(["algo_init", "pairing_seed"])["final"].mean().unstack(0)
+            per_seed = per_seed.dropna(subset=[a, b])
+            if per_seed.empty:
+                continue
+            d = (per_seed[b] - per_seed[a]).to_numpy(float)
+            low, high = return_range(pair)
+            ci = mean_ci(d, bounds=(low - high, high - low))
+            curve_b = table[b][per_seed.index.to_list()]
+            unit_curves = curve_b.T.groupby(level="unit", sort=False).mean()
+            rows.append(
+                {
+                    "env": env,
+                    "wind": wind,
+                    "configs": " ".join(str(c) for c in sorted(shared)),
+                    "comparison": f"{init_label(b)} − {init_label(a)}",
+                    "n_pairs": ci.n,
+                    "seeds": " ".join(str(s) for s in per_seed.index),
+                    "return_a": float(per_seed[a].mean()),
+                    "return_b": float(per_seed[b].mean()),
+                    "diff": ci.mean,
+                    "ci95_low": ci.low,
+                    "ci95_high": ci.high,
+                    "ci95_half_width": ci.half_width,
+                    "p_sign_flip": sign_flip_p(d) if ci.n >= 2 else math.nan,
+                    f"{SEEDS_COLUMN}hw{FINETUNE_HALF_WIDTH:g}": seeds_for_half_width(
+                        Spread(float(np.std(d, ddof=1))), FINETUNE_HALF_WIDTH
+                    )
+                    if ci.n >= 2
                     else math.nan,
+                    "first_epoch_b_reaching_a": first_epoch_reaching(
+                        table.index.to_numpy(float),
+                        unit_curves.mean(axis=0).to_numpy(float),
+                        float(per_seed[a].mean()),
+                    ),
                 }
             )
     return pd.DataFrame(rows)
@@ -255,6 +351,7 @@ TABLE_TITLES = {
     "summary": "Final entropy per group and configuration (nats)",
     "differences": "Differences between algorithms (nats; same env and wind)",
     "finetune": "Fine-tuning returns",
+    "finetune_differences": "Differences between initialisations in fine-tuning (paired by seed)",
     "drops": "Drops and the KL of the updates before them (runs with diagnostics)",
     "drops_pooled": "Drops per group, pooled over seeds",
 }
@@ -299,6 +396,21 @@ def table_caption(name: str) -> str:
             "`n_pretrain` pre-training runs, `n_finetune_seeds` fine-tuning seeds, `n_targets` "
             "targets and `n_curves` curves in all. Last column: the first epoch at which the "
             "mean curve reaches the final mean return of the Mepol-initialised runs."
+        ),
+        "finetune_differences": (
+            "Final return of initialisation b minus a (`comparison`: b − a), paired by "
+            "fine-tuning seed (targets come from `goal_seed`, so paired runs face the same "
+            "ones). Per initialisation and "
+            "seed, R is the mean final return (each curve's mean over the last 10% of epochs) "
+            "over its targets and the configurations both initialisations ran (`configs`, "
+            "pooled); `return_a`, `return_b` average R over the `n_pairs` seeds (`seeds`). "
+            "`diff`, `ci95_*`: the mean of the per-seed differences with its Student-t 95% "
+            "interval, cut to the range a difference of returns can take ([-1, 1] for a goal "
+            "task); `ci95_half_width` before the cut. `p_sign_flip`: the two-sided exact "
+            "sign-flip p-value of a zero mean difference. "
+            f"`{SEEDS_COLUMN}hw{FINETUNE_HALF_WIDTH:g}`: the pairs a ±{FINETUNE_HALF_WIDTH:g} "
+            "interval needs at the observed spread. Last column: the first epoch at which b's "
+            "mean curve (its independent units' mean curves, averaged) reaches `return_a`."
         ),
         "drops": (
             f"A drop: a fall of more than {DROP_NATS:g} nat in one configuration's entropy "
@@ -351,8 +463,9 @@ def table_sections(tables: dict[str, pd.DataFrame]) -> list[tuple[str, str, str,
 def write_summary(
     groups: list[Group], finetune_runs: list[Run], out_dir: Path
 ) -> tuple[dict[str, pd.DataFrame], list[Path]]:
-    """Write summary.csv, differences.csv, finetune.csv, drops.csv, drops_pooled.csv (each when
-    not empty) and summary.md; return the tables and the files written."""
+    """Write summary.csv, differences.csv, finetune.csv, finetune_differences.csv, drops.csv,
+    drops_pooled.csv (each when not empty) and summary.md; return the tables and the files
+    written."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     drops = drop_table(diagnosed(groups))
@@ -360,6 +473,7 @@ def write_summary(
         "summary": final_entropy_table(groups),
         "differences": difference_table(groups),
         "finetune": finetune_table(finetune_runs),
+        "finetune_differences": finetune_difference_table(finetune_runs),
         "drops": drops,
         "drops_pooled": pooled_drops(drops),
     }
