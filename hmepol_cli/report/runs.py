@@ -20,10 +20,10 @@ import numpy as np
 import pandas as pd
 
 from hmepol_cli.algorithms import ALGORITHMS, SCRATCH
+from hmepol_cli.errors import RunDirError
 from hmepol_cli.plots import WorldMap
 from hmepol_cli.report.defaults import algo_defaults
 from hmepol_cli.report.stats import FINAL_FRACTION, UNBOUNDED, final_value
-from hmepol_cli.errors import RunDirError
 from hmepol_cli.run import CHECKPOINT, read_json
 
 # Config keys that say how a run was executed, not what was run: never a reason to split groups.
