@@ -322,7 +322,7 @@ def format_number(column: str, value, digits: int = 3) -> str | None:
         return format_seeds(float(value))
     if not np.isfinite(value):
         return "n/a"
-    if column in ("wind", "first_epoch_reaching_mepol_final"):
+    if column == "wind" or column.startswith("first_epoch"):
         return f"{value:g}"
     return f"{value:.{digits}f}"
 
