@@ -9,7 +9,7 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 DEMO_DIR ?= outputs/demo
 DEMO_FINETUNE ?= epochs=6 episodes=10 horizon=150 targets=1 config=0 fisher_fraction=0.25
 
-.PHONY: install install-demo demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor finetune-continuation studies report-wind-sweep clean
+.PHONY: install install-demo demo test test-fast bench lint results reproduce-quick reproduce-quick-slope reproduce-quick-multigrid reproduce chapter5 reproduce-corridor finetune-corridor finetune-continuation report-finetune-continuation studies report-wind-sweep clean
 
 PIP_INSTALL = $(PYTHON) -m pip install --quiet
 
@@ -87,6 +87,7 @@ results:
 	$(HMEPOL) report docs/results/collapse/finetune-epoch100 --out docs/results/collapse/report-finetune-epoch100
 	$(HMEPOL) report docs/results/collapse/finetune-epoch75 --out docs/results/collapse/report-finetune-epoch75
 	$(HMEPOL) report docs/results/precision --out docs/results/precision/report
+	$(HMEPOL) report $(FINETUNE_OUT) --out $(FINETUNE_OUT)/report
 	$(HMEPOL) study conf/study/decisive_corridor.yaml --status
 
 # Chapter 5 at the thesis' full settings (tables A.1-A.3: 500 epochs, 8 seeds, 4 for multigrid) as
@@ -142,6 +143,11 @@ finetune-continuation:
 	  done; \
 	  $(HMEPOL) finetune init=none env=corridor wind=0.4 seed=$$s $(FINETUNE_BOTH) output_dir=$(FINETUNE_OUT)/scratch-seed$$s || exit 1; \
 	done
+
+# Its report: Fig. 5.9 per configuration and the pre-registered paired differences
+# (finetune_differences.csv), over whatever runs exist so far.
+report-finetune-continuation:
+	$(HMEPOL) report $(FINETUNE_OUT) --out $(FINETUNE_OUT)/report
 
 finetune-corridor:
 	for s in 0 1; do \
