@@ -48,8 +48,8 @@ LAUNCHERS = ("local", "population", "population_local", "slurm", "population_slu
 WARN_HOURS = 3.0  # a stage estimated to need more than this on this machine is announced
 POLL_SECONDS = 30.0  # between progress lines
 SWEEP_POLL_SECONDS = 1.0  # between looks at the running sweeps
-KEYS = {"name", "folder", "posthoc", "kept_stages", "launcher", "seeds_per_stage", "stages",
-        "alpha", "beta",
+KEYS = {"name", "folder", "posthoc", "ran_stages", "kept_stages", "launcher", "seeds_per_stage",
+        "stages", "alpha", "beta",
         "permutations", "adastop_seed", "epochs", "metric", "half_width", "overrides", "arms",
         "comparisons", "parallel_sweeps", "seeds_per_sweep"}  # fmt: skip
 # How runs are executed, not what they compute: the keys an amendment may change (and the
@@ -88,6 +88,7 @@ class Spec:
     overrides: tuple[str, ...] = ()
     posthoc: bool = False
     kept_stages: int = 0  # stages 1..kept_stages: runs made before the pre-registration
+    ran_stages: int = 0  # posthoc: the stages its runs fill; 0: every seed in its folder
     parallel_sweeps: int = 1  # sweeps of a stage that run at the same time
     seeds_per_sweep: int = 0  # seeds one sweep trains (a population's members); 0: the stage's
 
@@ -153,6 +154,13 @@ def load_spec(path: str | Path, text: str | None = None, folder: Path | None = N
     if kept and raw.get("posthoc", False):
         raise UserError(f"{where}: kept_stages continues kept runs with pre-registered stages; "
                         "posthoc: true only reads runs: give one or the other")  # fmt: skip
+    ran = raw.get("ran_stages", 0)
+    if isinstance(ran, bool) or not isinstance(ran, int) or not 0 <= ran <= stages:
+        raise UserError(f"{where}: ran_stages={ran!r} must be a whole number from 0 to "
+                        f"stages = {stages}")  # fmt: skip
+    if ran and not raw.get("posthoc", False):
+        raise UserError(f"{where}: ran_stages says which stages a post-hoc reading's runs fill; "
+                        "it needs posthoc: true")  # fmt: skip
     launcher = str(raw.get("launcher", "local"))
     if launcher not in LAUNCHERS:
         raise UserError(f"{where}: launcher={launcher!r}; choose {', '.join(LAUNCHERS)}")
@@ -203,7 +211,7 @@ def load_spec(path: str | Path, text: str | None = None, folder: Path | None = N
         comparisons=tuple(pairs), launcher=launcher,
         half_width=float(raw.get("half_width", 0.3)), overrides=tuple(map(str, overrides)),
         posthoc=bool(raw.get("posthoc", False)), kept_stages=kept, parallel_sweeps=parallel,
-        seeds_per_sweep=per_sweep,
+        seeds_per_sweep=per_sweep, ran_stages=ran,
     )  # fmt: skip
 
 
@@ -433,6 +441,9 @@ def status(spec: Spec) -> Status:
     the arms it trains have every seed of it: all arms at stage 1, later the arms of the
     comparisons AdaStop left undecided (:func:`stage_arms`)."""
     runs = {name: arm_runs(arm, spec.epochs) for name, arm in spec.arms.items()}
+    if spec.ran_stages:  # a continuation's later seeds in the same folder are its own study's
+        runs = {name: {s: r for s, r in arm.items() if s < spec.ran_stages * spec.n}
+                for name, arm in runs.items()}  # fmt: skip
     metrics = {name: arm_metric(spec, arm) for name, arm in runs.items()}
     values: dict[str, dict[int, float]] = {a: {} for a in runs}
     decisions: list[Stage] = []
@@ -482,8 +493,8 @@ def registration_order(st: Status) -> str | None:
     runs are older by design): its time against each run's first launch. None for a study
     without ``preregistration.yaml`` (one that reads kept runs only)."""
     path = st.spec.folder / PREREGISTRATION
-    if not path.is_file():
-        return None
+    if st.spec.posthoc or not path.is_file():  # a post-hoc reading registers nothing: any
+        return None  # preregistration.yaml beside its runs is a continuation's
     written, _ = _registration(path)
     try:
         registered = datetime.fromisoformat(str(written.get("written")))
@@ -523,7 +534,8 @@ def status_lines(st: Status) -> list[str]:
              f"{spec.stages} stages, alpha {spec.alpha:g}, metric: mean of "
              f"{', '.join(spec.columns)} over epochs {spec.window[0]}-{spec.window[1]} of "
              f"{spec.epochs}; runs under {spec.folder}"]  # fmt: skip
-    lines += [f"  {line}" for line in amendment_lines(spec.folder / PREREGISTRATION)]
+    if not spec.posthoc:
+        lines += [f"  {line}" for line in amendment_lines(spec.folder / PREREGISTRATION)]
     order = registration_order(st)
     if order is not None:
         lines.append(f"  {order}")

@@ -312,6 +312,33 @@ def test_kept_stages_out_of_range_or_with_posthoc_are_refused(tmp_path, extra, w
         load_spec(spec_file(tmp_path, n=2, stages=3, **extra))
 
 
+def test_a_post_hoc_reading_keeps_to_the_stages_its_runs_fill(tmp_path):
+    """The decisive experiment's layout: seeds 0-3 read post hoc, then a continuation's seeds
+    4-5 and its preregistration.yaml in the same folder. ran_stages: 1 reads seeds 0-1 alone
+    (n = 2 a stage) and names no pre-registration; without it the continuation's seeds count."""
+    levels = {"a": [1.0, 1.0, 1.0, 1.0, 1.0, 1.0], "b": [1.5, 1.7, 0.0, 0.0, 0.0, 0.0]}
+    spec = load_spec(spec_file(tmp_path, n=2, stages=3, posthoc=True, ran_stages=1))
+    for arm, values in levels.items():
+        for seed, level in enumerate(values):
+            make_run(spec.arms[arm].folder, seed, level, 5)
+    (spec.folder / "preregistration.yaml").write_text("written: '2030-01-01T00:00:00+00:00'\n")
+    st = status(spec)
+    assert sorted(st.runs["b"]) == [0, 1] and st.complete_stages == 1
+    assert st.differences[("b", "a")].mean == pytest.approx(0.6)  # (0.5 + 0.7) / 2
+    assert not any("pre-registration" in line for line in status_lines(st))
+    everything = status(load_spec(spec_file(tmp_path, n=2, stages=3, posthoc=True)))
+    assert sorted(everything.runs["b"]) == list(range(6)) and everything.complete_stages == 3
+
+
+@pytest.mark.parametrize("extra, word", [
+    ({"ran_stages": 4, "posthoc": True}, "ran_stages=4"),
+    ({"ran_stages": 1}, "it needs posthoc: true"),
+])  # fmt: skip
+def test_ran_stages_out_of_range_or_without_posthoc_are_refused(tmp_path, extra, word):
+    with pytest.raises(UserError, match=re.escape(word)):
+        load_spec(spec_file(tmp_path, n=2, stages=3, **extra))
+
+
 def test_sweeps_split_the_stage_and_share_the_time(tmp_path):
     """Seeds per sweep and sweeps at a time: the stage's hours by hand."""
     from hmepol_cli.study import sweep_seeds
