@@ -15,7 +15,7 @@ import pandas as pd
 from hmepol_cli.algorithms import SCRATCH
 from hmepol_cli.report.aggregates import METHOD as AGGREGATES_METHOD
 from hmepol_cli.report.aggregates import improvement_interval, iqm_interval, mean_interval
-from hmepol_cli.report.comparisons import sign_flip_p
+from hmepol_cli.report.comparisons import paired
 from hmepol_cli.report.diagnostics import (
     DROP_FROM,
     DROP_NATS,
@@ -43,13 +43,11 @@ from hmepol_cli.report.resolution import (
 )
 from hmepol_cli.report.runs import Group, Run, algo_label
 from hmepol_cli.report.stats import (
-    Spread,
     curve_ci,
     difference_ci,
     final_value,
     mean_ci,
     nested_mean_ci,
-    seeds_for_half_width,
 )
 
 
@@ -249,9 +247,9 @@ def finetune_difference_table(runs: list[Run]) -> pd.DataFrame:
     """Paired differences of final return between two initialisations, over the fine-tuning
     seeds both have, all configurations they share pooled.
 
-    The fine-tuning seed pairs them (a protocol such as ``make finetune-continuation``
-    fine-tunes the pre-training runs of seed s with seed s; every run draws its targets from
-    ``goal_seed``, so paired runs face the same targets). Per initialisation and seed, R is the
+    The pre-training run's seed pairs them (from scratch, the fine-tuning seed:
+    :attr:`Run.pairing_seed`); every run draws its targets from ``goal_seed``, so paired runs
+    face the same targets. Per initialisation and seed, R is the
     mean of its curves' final returns (each curve's mean over the last 10% of epochs) over its
     targets and the shared configurations; d = R_b - R_a per seed, with the mean, its 95%
     Student-t interval cut to the range a difference of returns can take, the exact sign-flip
@@ -279,9 +277,9 @@ def finetune_difference_table(runs: list[Run]) -> pd.DataFrame:
             per_seed = per_seed.dropna(subset=[a, b])
             if per_seed.empty:
                 continue
-            d = (per_seed[b] - per_seed[a]).to_numpy(float)
             low, high = return_range(pair)
-            ci = mean_ci(d, bounds=(low - high, high - low))
+            r = paired(per_seed[a].to_dict(), per_seed[b].to_dict(), FINETUNE_HALF_WIDTH)
+            span = high - low  # a difference of returns lies in [-span, span]
             curve_b = table[b][per_seed.index.to_list()]
             unit_curves = curve_b.T.groupby(level="unit", sort=False).mean()
             rows.append(
@@ -290,20 +288,16 @@ def finetune_difference_table(runs: list[Run]) -> pd.DataFrame:
                     "wind": wind,
                     "configs": " ".join(str(c) for c in sorted(shared)),
                     "comparison": f"{init_label(b)} − {init_label(a)}",
-                    "n_pairs": ci.n,
+                    "n_pairs": r.n,
                     "seeds": " ".join(str(s) for s in per_seed.index),
                     "return_a": float(per_seed[a].mean()),
                     "return_b": float(per_seed[b].mean()),
-                    "diff": ci.mean,
-                    "ci95_low": ci.low,
-                    "ci95_high": ci.high,
-                    "ci95_half_width": ci.half_width,
-                    "p_sign_flip": sign_flip_p(d) if ci.n >= 2 else math.nan,
-                    f"{SEEDS_COLUMN}hw{FINETUNE_HALF_WIDTH:g}": seeds_for_half_width(
-                        Spread(float(np.std(d, ddof=1))), FINETUNE_HALF_WIDTH
-                    )
-                    if ci.n >= 2
-                    else math.nan,
+                    "diff": r.mean,
+                    "ci95_low": float(np.clip(r.low, -span, span)),
+                    "ci95_high": float(np.clip(r.high, -span, span)),
+                    "ci95_half_width": r.high - r.mean,  # the t half-width, before the cut
+                    "p_sign_flip": r.p,
+                    f"{SEEDS_COLUMN}hw{FINETUNE_HALF_WIDTH:g}": r.seeds_needed,
                     "first_epoch_b_reaching_a": first_epoch_reaching(
                         table.index.to_numpy(float),
                         unit_curves.mean(axis=0).to_numpy(float),
@@ -398,9 +392,9 @@ def table_caption(name: str) -> str:
             "mean curve reaches the final mean return of the Mepol-initialised runs."
         ),
         "finetune_differences": (
-            "Final return of initialisation b minus a (`comparison`: b − a), paired by "
-            "fine-tuning seed (targets come from `goal_seed`, so paired runs face the same "
-            "ones). Per initialisation and "
+            "Final return of initialisation b minus a (`comparison`: b − a), paired by the "
+            "pre-training run's seed (from scratch, the fine-tuning seed; targets come from "
+            "`goal_seed`, so paired runs face the same ones). Per initialisation and "
             "seed, R is the mean final return (each curve's mean over the last 10% of epochs) "
             "over its targets and the configurations both initialisations ran (`configs`, "
             "pooled); `return_a`, `return_b` average R over the `n_pairs` seeds (`seeds`). "
