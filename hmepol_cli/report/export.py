@@ -11,6 +11,9 @@ the final policy as policy.pt: the last checkpoint's weights only (no optimizer 
 at most), which ``hmepol finetune init=<exported run>`` starts from. The resume kit
 (checkpoints/last.pt, Adam state included) is copied only with ``--kits``: it lets a run go on
 on another machine, and it is what makes a clone heavy. batches.csv and pictures are left out.
+``--no-diagnostics`` leaves steps.csv.gz out and ``--no-policy`` the final policy (what a study
+keeps when the repository's size budget has no room for them: docs/studies.md); each also
+removes the copy an earlier export left in DEST, which would describe only part of the run.
 ``hmepol
 report DEST`` then rebuilds every figure and table from these files alone. Unfinished runs are
 copied too (a later export brings them up to date); the report lists them as skipped. Every
@@ -51,9 +54,17 @@ from hmepol_cli.run import (
 KEPT = (CONFIG, RUN_INFO, COMMANDS, EPOCHS_CSV, FINETUNE_CSV, TARGETS_JSON)
 
 
-def export_runs(source: Path, dest: Path, kits: bool = False) -> list[Path]:
+def export_runs(
+    source: Path,
+    dest: Path,
+    kits: bool = False,
+    *,
+    diagnostics: bool = True,
+    policy: bool = True,
+) -> list[Path]:
     """Copy the kept files of every run under ``source`` to the same place under ``dest``: its
-    final policy too, and with ``kits`` its resume kit."""
+    diagnostics (steps.csv.gz) and final policy unless told not to (removing an earlier export's
+    copy then), and with ``kits`` its resume kit."""
     exported = []
     for marker in sorted(Path(source).rglob(RUN_INFO)):
         run_dir = marker.parent
@@ -62,7 +73,9 @@ def export_runs(source: Path, dest: Path, kits: bool = False) -> list[Path]:
         for name in KEPT:
             if (run_dir / name).is_file():
                 atomic_write_bytes(target / name, (run_dir / name).read_bytes())
-        if (run_dir / STEPS_CSV).is_file():
+        if not diagnostics:
+            (target / f"{STEPS_CSV}.gz").unlink(missing_ok=True)
+        elif (run_dir / STEPS_CSV).is_file():
             data = gzip.compress((run_dir / STEPS_CSV).read_bytes(), mtime=0)
             atomic_write_bytes(target / f"{STEPS_CSV}.gz", data)
         final = run_dir / EVAL_DIR / f"{FINAL_EVAL}.npz"
@@ -75,14 +88,18 @@ def export_runs(source: Path, dest: Path, kits: bool = False) -> list[Path]:
             np.savez_compressed(buffer, **positions)
             atomic_write_bytes(target / EVAL_DIR / f"{FINAL_EVAL}.npz", buffer.getvalue())
         checkpoint = run_dir / CHECKPOINT
-        if checkpoint.is_file():
+        if not policy:
+            (target / FINAL_POLICY).unlink(missing_ok=True)
+        if checkpoint.is_file() and (policy or kits):
             try:
                 state = load_checkpoint(checkpoint)
             except RunDirError as error:
                 warnings.warn(f"{error}: its final policy is not exported", stacklevel=2)
                 exported.append(target)
                 continue
-            save_checkpoint(target / FINAL_POLICY, {k: state[k] for k in POLICY_KEYS if k in state})
+            if policy:
+                weights = {k: state[k] for k in POLICY_KEYS if k in state}
+                save_checkpoint(target / FINAL_POLICY, weights)
             if kits:
                 (target / CHECKPOINT).parent.mkdir(exist_ok=True)
                 atomic_write_bytes(target / CHECKPOINT, checkpoint.read_bytes())
@@ -99,8 +116,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--kits", action="store_true", help="also the resume kits "
                         "(checkpoints/last.pt, Adam state included): only when moving to another "
                         "machine would lose hours of compute")  # fmt: skip
+    parser.add_argument("--no-diagnostics", action="store_true",
+                        help="leave steps.csv.gz out (and an earlier export's)")  # fmt: skip
+    parser.add_argument("--no-policy", action="store_true",
+                        help="leave the final policy out (and an earlier export's)")  # fmt: skip
     args = parser.parse_args(argv)
-    runs = export_runs(args.source, args.dest, args.kits)
+    runs = export_runs(
+        args.source,
+        args.dest,
+        args.kits,
+        diagnostics=not args.no_diagnostics,
+        policy=not args.no_policy,
+    )
     print(f"{len(runs)} runs exported to {args.dest}")
 
 
