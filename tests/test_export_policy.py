@@ -69,6 +69,9 @@ def test_an_export_without_diagnostics_or_policy_leaves_them_out_and_removes_sta
     assert not (lean / FINAL_POLICY).exists()
     assert (lean / "epochs.csv").read_text() == "epoch,entropy_c0\n0,1.0\n"
     assert (lean / "eval" / "final.npz").is_file()
+    (bare,) = export_runs(tmp_path / "runs", tmp_path / "kept", policy=False, positions=False)
+    assert not (bare / "eval" / "final.npz").exists()  # the earlier copy is gone as well
+    assert (bare / "epochs.csv").read_text() == "epoch,entropy_c0\n0,1.0\n"
     (diagnosed,) = export_runs(tmp_path / "runs", tmp_path / "other", policy=False)
     assert (diagnosed / "steps.csv.gz").is_file() and not (diagnosed / FINAL_POLICY).exists()
     (kit,) = export_runs(tmp_path / "runs", tmp_path / "moved", kits=True, policy=False)

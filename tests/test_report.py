@@ -1443,3 +1443,30 @@ def test_report_of_unfinished_runs_cuts_each_wind_on_its_own(tmp_path, capsys):
     # Fig. 5.10 puts the winds on one axis: its caption names each wind's epochs.
     page = html.unescape((tmp_path / "report" / "index.html").read_text())
     assert "(wind 0.05: 18-19; wind 0.15: 10-11; wind 0.25: 14-15; wind 0.35: 1)" in page
+
+
+def test_a_finished_run_kept_without_final_positions_counts_in_every_table_and_no_map(tmp_path):
+    """A study may keep a run's epochs.csv without its eval/final.npz (the export's
+    --no-positions): its entropies count, and the maps draw the median of the runs that have
+    positions; a damaged eval/final.npz still makes the run unusable."""
+    root = tmp_path / "runs"
+    for seed in (0, 1, 2):
+        write_run(root, algo="mepol", seed=seed, final=1.0 + 0.1 * seed)
+    run_report(root, tmp_path / "with-positions")
+    (root / "slope-mepol-wind0.4-seed2" / "eval" / "final.npz").unlink()
+    runs, skipped = discover_runs(root)
+    assert not skipped
+    assert {r.seed: r.positions is None for r in runs} == {0: False, 1: False, 2: True}
+    (group,) = group_runs(runs)
+    assert group.representative().seed == 0  # the lower median of the two seeds with maps
+    run_report(root, tmp_path / "report")
+    pd.testing.assert_frame_equal(  # the same numbers as with every map
+        pd.read_csv(tmp_path / "report" / "summary.csv"),
+        pd.read_csv(tmp_path / "with-positions" / "summary.csv"),
+    )
+    assert pd.read_csv(tmp_path / "report" / "summary.csv").n_seeds.unique().tolist() == [3]
+    assert (tmp_path / "report" / "figures" / "slope_heatmaps.png").is_file()
+    (root / "slope-mepol-wind0.4-seed1" / "eval" / "final.npz").write_bytes(b"not a zip file")
+    with pytest.warns(SkippedRunWarning, match="eval/final.npz is unreadable"):
+        skipped = discover_runs(root)[1]
+    assert [s.path.name for s in skipped] == ["slope-mepol-wind0.4-seed1"]

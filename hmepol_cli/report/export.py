@@ -11,9 +11,11 @@ the final policy as policy.pt: the last checkpoint's weights only (no optimizer 
 at most), which ``hmepol finetune init=<exported run>`` starts from. The resume kit
 (checkpoints/last.pt, Adam state included) is copied only with ``--kits``: it lets a run go on
 on another machine, and it is what makes a clone heavy. batches.csv and pictures are left out.
-``--no-diagnostics`` leaves steps.csv.gz out and ``--no-policy`` the final policy (what a study
-keeps when the repository's size budget has no room for them: docs/studies.md); each also
-removes the copy an earlier export left in DEST, which would describe only part of the run.
+``--no-diagnostics`` leaves steps.csv.gz out, ``--no-policy`` the final policy and
+``--no-positions`` the final positions (what a study keeps when the repository's size budget has
+no room for them: docs/studies.md; such a run is in every curve and table of the report, in no
+map); each also removes the copy an earlier export left in DEST, which would describe only part
+of the run.
 ``hmepol
 report DEST`` then rebuilds every figure and table from these files alone. Unfinished runs are
 copied too (a later export brings them up to date); the report lists them as skipped. Every
@@ -61,10 +63,11 @@ def export_runs(
     *,
     diagnostics: bool = True,
     policy: bool = True,
+    positions: bool = True,
 ) -> list[Path]:
     """Copy the kept files of every run under ``source`` to the same place under ``dest``: its
-    diagnostics (steps.csv.gz) and final policy unless told not to (removing an earlier export's
-    copy then), and with ``kits`` its resume kit."""
+    diagnostics (steps.csv.gz), final positions and final policy unless told not to (removing an
+    earlier export's copy then), and with ``kits`` its resume kit."""
     exported = []
     for marker in sorted(Path(source).rglob(RUN_INFO)):
         run_dir = marker.parent
@@ -79,7 +82,9 @@ def export_runs(
             data = gzip.compress((run_dir / STEPS_CSV).read_bytes(), mtime=0)
             atomic_write_bytes(target / f"{STEPS_CSV}.gz", data)
         final = run_dir / EVAL_DIR / f"{FINAL_EVAL}.npz"
-        if final.is_file():
+        if not positions:
+            (target / EVAL_DIR / f"{FINAL_EVAL}.npz").unlink(missing_ok=True)
+        elif final.is_file():
             positions = {
                 f"positions_c{c}": p.astype(np.float16) for c, p in load_positions(final).items()
             }
@@ -120,6 +125,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="leave steps.csv.gz out (and an earlier export's)")  # fmt: skip
     parser.add_argument("--no-policy", action="store_true",
                         help="leave the final policy out (and an earlier export's)")  # fmt: skip
+    parser.add_argument("--no-positions", action="store_true",
+                        help="leave the final positions (eval/final.npz) out (and an earlier "
+                        "export's): the run is then in no map")  # fmt: skip
     args = parser.parse_args(argv)
     runs = export_runs(
         args.source,
@@ -127,6 +135,7 @@ def main(argv: list[str] | None = None) -> None:
         args.kits,
         diagnostics=not args.no_diagnostics,
         policy=not args.no_policy,
+        positions=not args.no_positions,
     )
     print(f"{len(runs)} runs exported to {args.dest}")
 

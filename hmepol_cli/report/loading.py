@@ -4,7 +4,8 @@ A run directory is any directory holding ``run.json`` (:mod:`hmepol_cli.run` is 
 contract): config.yaml, run.json (status, epochs_done, env, algo, policy, seed, wind, config
 names/probs, free areas, the edge and backtracking rules, the world's map, a fine-tuning's return
 bounds), epochs.csv, batches.csv (which configurations an epoch drew, where its
-entropy_c<c> must be a number), eval/final.npz and, for fine-tuning runs, finetune.csv.
+entropy_c<c> must be a number), eval/final.npz (the final positions, for maps; a run kept
+without them is still used for every curve and table) and, for fine-tuning runs, finetune.csv.
 
 Runs that cannot be used (unfinished, missing or corrupt files, a row cut short or not a number)
 are skipped with a warning and listed, with the reason, in the report; the rest of the report is
@@ -126,8 +127,6 @@ def check_entropies(epochs: pd.DataFrame, drawn: set[tuple[float, int]] | None) 
 
 
 def _read_positions(path: Path, n_configurations: int) -> dict[int, np.ndarray]:
-    if not path.is_file():
-        raise RunError("eval/final.npz is missing")
     try:
         positions = load_positions(path)
     except Exception as err:  # numpy raises several errors for a damaged archive
@@ -207,7 +206,9 @@ def load_run(path: Path, unfinished: bool = False) -> Run:
     check_entropies(epochs, _drawn_configurations(path / BATCHES_CSV))
     run.epochs = epochs.sort_values("epoch")
     final_eval = path / EVAL_DIR / f"{FINAL_EVAL}.npz"
-    if status == "finished" or final_eval.exists():  # an unfinished run has no final evaluation
+    # An unfinished run has no final evaluation, and a kept run may leave it out (the export's
+    # --no-positions): either is drawn in no map. One that is there must be whole.
+    if final_eval.exists():
         run.positions = _read_positions(final_eval, run.n_configurations)
     return run
 
