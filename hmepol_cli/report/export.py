@@ -85,12 +85,12 @@ def export_runs(
         if not positions:
             (target / EVAL_DIR / f"{FINAL_EVAL}.npz").unlink(missing_ok=True)
         elif final.is_file():
-            positions = {
+            arrays = {
                 f"positions_c{c}": p.astype(np.float16) for c, p in load_positions(final).items()
             }
             (target / EVAL_DIR).mkdir(exist_ok=True)
             buffer = io.BytesIO()
-            np.savez_compressed(buffer, **positions)
+            np.savez_compressed(buffer, **arrays)
             atomic_write_bytes(target / EVAL_DIR / f"{FINAL_EVAL}.npz", buffer.getvalue())
         checkpoint = run_dir / CHECKPOINT
         if not policy:
