@@ -1,7 +1,8 @@
 """The README and the docs/ pages: every relative link resolves (a file, and a heading for a
 #fragment), every repository path and `python -m` module named in backticks exists, every
-`make` target named is the Makefile's, the README stays a front page, and its first lines give
-the two commands and the decisive result's picture."""
+`make` target named is the Makefile's, every table row has its header's cells, the README
+stays a front page, and its first lines give the two commands and the decisive result's
+picture."""
 
 from __future__ import annotations
 
@@ -107,6 +108,30 @@ def test_every_make_target_named_is_the_makefiles(page):
     assert not missing, f"{page.name}: no such make target: {sorted(missing)}"
 
 
+def table_rows_off_their_header(text: str) -> list[tuple[int, int, int]]:
+    """(line, header cells, row cells) for every table row whose cell count is not its
+    header's. GitHub splits a cell at every unescaped |, in code spans too, and drops the
+    cells past the header's count, so a row like that loses its last words unseen."""
+    out, header, fence = [], None, False
+    for number, line in enumerate(text.splitlines(), start=1):
+        fence = fence != line.startswith("```")
+        if fence or not line.startswith("|"):
+            header = None
+            continue
+        cells = len(re.split(r"(?<!\\)\|", line.strip().strip("|")))
+        if header is None:
+            header = cells
+        elif cells != header:
+            out.append((number, header, cells))
+    return out
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_table_row_has_its_headers_cells(page):
+    off = table_rows_off_their_header(page.read_text())
+    assert not off, f"{page.name}: (line, header cells, row cells); write a cell's | as \\|: {off}"
+
+
 def test_the_checks_find_what_they_look_for():
     """Hand-written cases: what counts as a path, a module and a target, and what does not."""
     text = (
@@ -120,6 +145,8 @@ def test_the_checks_find_what_they_look_for():
     assert named_targets(text) == {"test-fast", "demo"}
     assert {"test", "test-fast", "demo", "bench", "results"} <= makefile_targets()
     assert "PYTHON" not in makefile_targets() and "TEST_WORKERS" not in makefile_targets()
+    table = "| a | b |\n|---|---|\n| max \\|h'\\| 2 | ok |\n| max |h'| 2 | lost |\n\nprose | x\n"
+    assert table_rows_off_their_header(table) == [(4, 2, 4)]
 
 
 def test_the_anchor_rule_follows_github():
