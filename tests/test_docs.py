@@ -18,13 +18,22 @@ PAGES = [ROOT / "README.md", ROOT / "RESULTS.md", *sorted((ROOT / "docs").glob("
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 
 
+def unfenced(text: str) -> list[str]:
+    """The text's lines, those of a code fence (its ``` lines too) blanked, so that line k of
+    the list is still line k + 1 of the page."""
+    out, fence = [], False
+    for line in text.splitlines():
+        marker = line.startswith("```")
+        fence = fence != marker
+        out.append("" if fence or marker else line)
+    return out
+
+
 def anchors(page: Path) -> set[str]:
     """GitHub's anchors of a page's headings (lower case, punctuation dropped, spaces to -)."""
-    out, fence = set(), False
-    for line in page.read_text().splitlines():
-        if line.startswith("```"):
-            fence = not fence
-        elif not fence and line.startswith("#"):
+    out = set()
+    for line in unfenced(page.read_text()):
+        if line.startswith("#"):
             title = line.lstrip("#").strip().lower()
             out.add(re.sub(r"[^\w\- ]", "", title).replace(" ", "-"))
     return out
@@ -112,10 +121,9 @@ def table_rows_off_their_header(text: str) -> list[tuple[int, int, int]]:
     """(line, header cells, row cells) for every table row whose cell count is not its
     header's. GitHub splits a cell at every unescaped |, in code spans too, and drops the
     cells past the header's count, so a row like that loses its last words unseen."""
-    out, header, fence = [], None, False
-    for number, line in enumerate(text.splitlines(), start=1):
-        fence = fence != line.startswith("```")
-        if fence or not line.startswith("|"):
+    out, header = [], None
+    for number, line in enumerate(unfenced(text), start=1):
+        if not line.startswith("|"):
             header = None
             continue
         cells = len(re.split(r"(?<!\\)\|", line.strip().strip("|")))
