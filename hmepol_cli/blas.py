@@ -49,6 +49,7 @@ BACKENDS = ("torch", "openblas")
 CHOICES = (*BACKENDS, "auto")
 ENV = "HMEPOL_BLAS"  # the default of the ``blas`` setting
 AUTO_MARGIN = 1.1  # blas=auto: OpenBLAS only where its products are this many times faster
+TIMING = "pool=threads"  # how auto times (in its cache key: a cache timed otherwise is redone)
 MIN_ROWS = 1024  # fewer rows (a rollout's steps): torch's call costs less than the detour
 BLOCK_ROWS = 1024  # rows of a block in the fused layer stack: 1.2 MB of a 300-wide layer
 
@@ -289,6 +290,7 @@ def _machine_key(rows: int, width: int) -> str:
     return "|".join(
         str(v)
         for v in (
+            TIMING,
             platform.processor() or platform.machine(),
             _cpu_model(),
             torch.__version__,
@@ -366,8 +368,11 @@ def resolve(
         return "torch", f"blas: torch ({kind} products are torch's whatever blas says)"
     if name != "auto":
         return name, f"blas={name}"
-    if torch.get_num_threads() > 1:
-        limit_openblas_threads(torch.get_num_threads())  # time both with the run's threads
+    # Time both with the run's threads, whatever their number: OpenBLAS's pool starts with every
+    # core. On a 2-core Zen 4 EPYC, 1 thread a run, that pool measured OpenBLAS at 2.37x torch
+    # alone and 0.64-0.66x with a second run timing beside it (it then kept torch for the
+    # machine); with the run's one thread, 1.37-1.39x either way.
+    limit_openblas_threads(torch.get_num_threads())
     rows = max(MIN_ROWS, min(int(rows), 40_000))
     choice, seconds = auto_choice(rows, width)
     ratio = seconds["torch"] / seconds["openblas"]

@@ -324,6 +324,32 @@ def test_auto_chooses_openblas_only_with_a_margin_and_measures_once(tmp_path, mo
     assert blas.resolve("openblas", "cpu", torch.float64, 6000, 64)[0] == "torch"
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_auto_times_openblas_with_the_runs_threads(tmp_path, monkeypatch, threads):
+    """The timing's OpenBLAS pool is the run's thread count, one thread included: OpenBLAS's
+    pool starts with every core, which a 1-thread run never has (a full pool overstated it
+    2.37x alone, and two runs timing side by side on 2 cores understated it 0.65x)."""
+    from threadpoolctl import threadpool_limits
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    pools = []
+
+    def fake(rows, width, repeats=5):
+        pools.append(blas.openblas_info()["num_threads"])
+        return {"torch": 1.0, "openblas": 1.0}
+
+    monkeypatch.setattr(blas, "layer_seconds", fake)
+    before, torch_threads = blas.openblas_info()["num_threads"], torch.get_num_threads()
+    try:
+        threadpool_limits(limits=3, user_api="blas")  # a pool wider than the run's, any machine
+        torch.set_num_threads(threads)
+        blas.resolve("auto", "cpu", torch.float32, 5000, 64)
+    finally:
+        torch.set_num_threads(torch_threads)
+        threadpool_limits(limits=before, user_api="blas")
+    assert pools == [threads]
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     repeats=st.integers(2, 6),
