@@ -350,6 +350,22 @@ def test_auto_times_openblas_with_the_runs_threads(tmp_path, monkeypatch, thread
     assert pools == [threads]
 
 
+def test_a_cache_timed_with_the_full_pool_is_timed_again(tmp_path, monkeypatch):
+    """A machine's cache from before the timing used the run's threads (its key without the
+    timing rule) holds a choice timed the old way: it is measured again, not read."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    key = blas._machine_key(5000, 64)
+    old_key = key.removeprefix(blas.TIMING + "|")
+    assert old_key != key
+    cache = tmp_path / "hmepol" / "blas.json"
+    cache.parent.mkdir()
+    cache.write_text(json.dumps({old_key: {"torch": 1.0, "openblas": 10.0}}))
+    monkeypatch.setattr(
+        blas, "layer_seconds", lambda rows, width, repeats=5: {"torch": 2.0, "openblas": 1.0}
+    )
+    assert blas.resolve("auto", "cpu", torch.float32, 5000, 64)[0] == "openblas"
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     repeats=st.integers(2, 6),
